@@ -1,0 +1,1 @@
+"""motok.control"""

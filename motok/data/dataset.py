@@ -1,0 +1,160 @@
+"""The motion artifacts: ``motion-dataset`` (preprocessed mocap with captions, splits and
+statistics) and ``motion`` (any motion motok makes later: decoded tokens, GPT samples).
+
+Both use one packed layout, documented in ``docs/artifacts.md``: every frame of every clip
+concatenated under ``/frames`` with a clip offset index under ``/clips``, so a training
+loader slices contiguous rows instead of opening one HDF5 group per clip.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from motok.artifacts import Provenance, open_artifact, provenance_of, read_strings, write_artifact, write_strings
+from motok.data.skeleton import Skeleton
+
+MOTION_KINDS = ("motion-dataset", "motion")
+
+
+@dataclass
+class Clip:
+    name: str
+    features: np.ndarray  # (T, 12J-1)
+    joints: np.ndarray  # (T, J, 3) canonical global positions, metres
+    local_quats: np.ndarray  # (T, J, 4)
+    root_translation: np.ndarray  # (T, 3)
+    source: str = ""
+    source_fps: float = 0.0
+    split: str = "none"
+    labels: dict = field(default_factory=dict)
+    captions: list = field(default_factory=list)  # [(text, tokens, start, end)]
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.features)
+
+
+def write_motion(path, kind: str, provenance: Provenance, clips: list[Clip], skeleton: Skeleton,
+                 offsets: np.ndarray, fps: float, legacy: bool, stats: tuple | None = None) -> Path:
+    """Write clips in the packed layout; atomic (see :func:`motok.artifacts.write_artifact`)."""
+    if not clips:
+        raise ValueError(f"{path}: refusing to write a {kind} artifact with no clips")
+    lengths = np.array([c.num_frames for c in clips], dtype=np.int64)
+    offsets_index = np.concatenate([[0], np.cumsum(lengths)])
+    with write_artifact(path, kind, provenance) as f:
+        f.attrs["fps"] = float(fps)
+        f.attrs["legacy"] = bool(legacy)
+        f.attrs["feature_dim"] = int(clips[0].features.shape[1])
+        f.attrs["num_joints"] = int(skeleton.num_joints)
+        sk = f.create_group("skeleton")
+        sk.attrs["definition"] = json.dumps(skeleton.to_dict())
+        write_strings(sk, "names", skeleton.joints)
+        sk.create_dataset("parents", data=skeleton.parents)
+        sk.create_dataset("offsets", data=np.asarray(offsets, dtype=np.float32))
+
+        c = f.create_group("clips")
+        write_strings(c, "name", [x.name for x in clips])
+        write_strings(c, "source", [x.source for x in clips])
+        c.create_dataset("source_fps", data=np.array([x.source_fps for x in clips], dtype=np.float64))
+        write_strings(c, "split", [x.split for x in clips])
+        write_strings(c, "labels", [json.dumps(x.labels, sort_keys=True) for x in clips])
+        c.create_dataset("offset", data=offsets_index)
+
+        caps = [(i, *cap) for i, x in enumerate(clips) for cap in x.captions]
+        g = f.create_group("captions")
+        g.create_dataset("clip", data=np.array([r[0] for r in caps], dtype=np.int64))
+        write_strings(g, "text", [r[1] for r in caps])
+        write_strings(g, "tokens", [r[2] for r in caps])
+        g.create_dataset("start", data=np.array([r[3] for r in caps], dtype=np.float64))
+        g.create_dataset("end", data=np.array([r[4] for r in caps], dtype=np.float64))
+
+        fr = f.create_group("frames")
+        for key in ("features", "joints", "local_quats", "root_translation"):
+            fr.create_dataset(key, data=np.concatenate([getattr(x, key) for x in clips]).astype(np.float32))
+        if stats is not None:
+            st = f.create_group("stats")
+            st.attrs["split"] = stats[2]
+            st.create_dataset("mean", data=np.asarray(stats[0], dtype=np.float32))
+            st.create_dataset("std", data=np.asarray(stats[1], dtype=np.float32))
+    return Path(path)
+
+
+class MotionFile:
+    """Read access to a motion or motion-dataset artifact; clips load lazily by name or index."""
+
+    def __init__(self, path, kind: str | tuple[str, ...] = MOTION_KINDS):
+        self.path = Path(path)
+        self.h5 = open_artifact(path, kind)
+        f = self.h5
+        self.kind = str(f.attrs["kind"])
+        self.fps = float(f.attrs["fps"])
+        self.legacy = bool(f.attrs["legacy"])
+        self.skeleton = Skeleton.from_dict(json.loads(f["skeleton"].attrs["definition"]), source=f"{path}:/skeleton")
+        self.offsets = f["skeleton/offsets"][()]
+        self.names = read_strings(f["clips/name"])
+        self.splits = read_strings(f["clips/split"])
+        self.frame_offsets = f["clips/offset"][()]
+        self._index = {n: i for i, n in enumerate(self.names)}
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        self.h5.close()
+
+    def __len__(self):
+        return len(self.names)
+
+    @property
+    def provenance(self) -> Provenance:
+        return provenance_of(self.h5)
+
+    def index(self, name_or_index) -> int:
+        if isinstance(name_or_index, (int, np.integer)):
+            if not 0 <= int(name_or_index) < len(self):
+                raise KeyError(f"{self.path}: clip index {name_or_index} out of range (0..{len(self) - 1})")
+            return int(name_or_index)
+        if name_or_index not in self._index:
+            near = [n for n in self.names if str(name_or_index).lower() in n.lower()][:5]
+            hint = f"; similar: {near}" if near else f"; first clips: {self.names[:3]}"
+            raise KeyError(f"{self.path}: no clip named {name_or_index!r}{hint}")
+        return self._index[name_or_index]
+
+    def frames(self, key: str, clip) -> np.ndarray:
+        i = self.index(clip)
+        a, b = self.frame_offsets[i], self.frame_offsets[i + 1]
+        return self.h5["frames"][key][a:b]
+
+    def captions(self, clip) -> list[tuple[str, float, float]]:
+        i = self.index(clip)
+        g = self.h5["captions"]
+        sel = np.flatnonzero(g["clip"][()] == i)
+        texts = read_strings(g["text"])
+        return [(texts[j], float(g["start"][j]), float(g["end"][j])) for j in sel]
+
+    def clip(self, clip) -> Clip:
+        i = self.index(clip)
+        c = self.h5["clips"]
+        return Clip(
+            name=self.names[i],
+            features=self.frames("features", i), joints=self.frames("joints", i),
+            local_quats=self.frames("local_quats", i), root_translation=self.frames("root_translation", i),
+            source=read_strings(c["source"])[i], source_fps=float(c["source_fps"][i]), split=self.splits[i],
+            labels=json.loads(read_strings(c["labels"])[i]),
+            captions=[(t, "", s, e) for t, s, e in self.captions(i)],
+        )
+
+    def split_indices(self, split: str) -> list[int]:
+        return [i for i, s in enumerate(self.splits) if s == split]
+
+    def stats(self) -> tuple[np.ndarray, np.ndarray]:
+        if "stats" not in self.h5:
+            raise KeyError(f"{self.path}: a {self.kind} artifact has no statistics")
+        return self.h5["stats/mean"][()], self.h5["stats/std"][()]

@@ -1,0 +1,282 @@
+"""``motok preprocess``: mocap (BVH or joint-position arrays) to a ``motion-dataset`` artifact.
+
+Two passes. Pass 1 streams the inputs (archives are read without extracting), parses each
+clip, resamples it to the target fps (local rotations by slerp, translations linearly) and
+runs forward kinematics to joint positions in metres. Pass 2 takes the target skeleton from
+a reference clip's frame-0 bone lengths and extracts the HumanML3D features of every clip
+(``motok.features.humanml3d``). Both passes fan out over ``jobs`` worker processes.
+Nothing is written unless the whole run succeeds; with ``skip_bad`` bad clips are listed in
+the artifact's provenance instead of stopping the run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.data.annotations import Annotations
+from motok.data.bvh import MotionFormatError, parse_bvh
+from motok.data.dataset import Clip, write_motion
+from motok.data.root import resolve_data_root
+from motok.data.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
+from motok.data.sources import MotionSource, iter_sources, load_npy_positions
+from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
+                                      skeleton_offsets)
+from motok.progress import info, make_progress
+
+
+@dataclass
+class PreprocessConfig:
+    inputs: list[str] = field(default_factory=lambda: ["bandai-namco/bandai-namco-2.tar.xz"])
+    annotations: str | None = "bandai-namco/annotations"
+    pattern: str = "*"  # clip-name glob; also decides which split entries must be present
+    skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
+    fps: float = 20.0
+    npy_fps: float = 20.0  # joint-position arrays carry no rate of their own
+    scale: float | None = None  # source units to metres; None: guess from the leg length
+    legacy: bool = False
+    reference_clip: str | None = None  # target bone lengths; None: first train clip by name
+    skip_bad: bool = False
+    jobs: int = 1
+    limit: int | None = None  # keep the first N matching clips (smoke runs); skips the split check
+    min_frames: int = 4  # at the target fps, after resampling
+
+
+@dataclass
+class _Loaded:
+    name: str
+    origin: str
+    source_fps: float
+    source_frames: int
+    positions: np.ndarray  # (T, J, 3) metres at the target fps
+    labels: dict
+
+
+def resolve_input(p: str, data_root: Path | None) -> Path:
+    path = Path(p).expanduser()
+    if path.exists() or path.is_absolute():
+        return path
+    root = resolve_data_root(data_root)
+    return root / p
+
+
+BANDAI_NAME = re.compile(r"^dataset-(\d+)_(.+?)_([a-z-]+)_(\d+)$")
+
+
+def labels_from_name(name: str) -> dict:
+    """Bandai-Namco clip names encode content and style: ``dataset-N_{content}_{style}_{id}``."""
+    m = BANDAI_NAME.match(name)
+    return {"set": int(m.group(1)), "content": m.group(2), "style": m.group(3)} if m else {}
+
+
+def snap_fps(fps: float) -> float:
+    """BVH frame times are printed with few digits (0.0333333 s is 30.00003 fps); a rate within
+    1e-4 relative of a whole number is that number, or 30 -> 20 fps would lose a frame."""
+    r = round(fps)
+    return float(r) if r > 0 and abs(fps - r) < 1e-4 * r else float(fps)
+
+
+def guess_scale(positions: np.ndarray, sk: Skeleton) -> float:
+    """Source units to metres, judged from the leg (thigh + shin) length of frame 0."""
+    legs = [np.linalg.norm(positions[0, j] - positions[0, sk.parents[j]]) for j in sk.leg_joints]
+    leg = float(sum(legs))
+    if leg > 300:  # millimetres
+        return 0.001
+    if leg > 3:  # centimetres (an adult leg is about 80 cm)
+        return 0.01
+    return 1.0
+
+
+def _load(src: MotionSource, skeleton: Skeleton | None, cfg: PreprocessConfig) -> tuple[_Loaded, Skeleton]:
+    """Pass 1 for one clip: parse, resample to cfg.fps, FK to positions in metres."""
+    if src.kind == "bvh":
+        m = parse_bvh(src.data, src.origin)
+        sk = skeleton or detect_skeleton(joint_names=m.names)
+        missing = [n for n in sk.joints if n not in m.names]
+        if missing:
+            raise MotionFormatError(src.origin, f"joints {missing} of skeleton {sk.name!r} are not in the file")
+        src_fps, n_src = snap_fps(m.fps), m.num_frames
+        if abs(src_fps - cfg.fps) > 1e-6:
+            m = dataclasses.replace(m, rotations=resample_quats(m.rotations, src_fps, cfg.fps),
+                                    translations=resample_positions(m.translations, src_fps, cfg.fps),
+                                    frame_time=1.0 / cfg.fps)
+        pos = m.global_positions()[:, [m.names.index(n) for n in sk.joints]]
+    else:
+        pos = load_npy_positions(src.data, src.origin)
+        sk = skeleton or detect_skeleton(num_joints=pos.shape[1])
+        if pos.shape[1] != sk.num_joints:
+            raise MotionFormatError(src.origin, f"array has {pos.shape[1]} joints, skeleton {sk.name!r} has "
+                                    f"{sk.num_joints}")
+        src_fps, n_src = cfg.npy_fps, len(pos)
+        if abs(src_fps - cfg.fps) > 1e-6:
+            pos = resample_positions(pos, src_fps, cfg.fps)
+    if not np.all(np.isfinite(pos)):
+        raise MotionFormatError(src.origin, "joint positions contain NaN or infinity")
+    scale = cfg.scale if cfg.scale is not None else guess_scale(pos, sk)
+    pos = pos * scale
+    if len(pos) < cfg.min_frames:
+        raise MotionFormatError(src.origin, f"clip has {len(pos)} frames at {cfg.fps} fps; at least "
+                                f"{cfg.min_frames} are needed")
+    return _Loaded(src.name, src.origin, float(src_fps), int(n_src), pos, labels_from_name(src.name)), sk
+
+
+def _load_job(args):
+    src, skeleton, cfg = args
+    try:
+        return _load(src, skeleton, cfg)
+    except (MotionFormatError, SkeletonError, ValueError) as e:
+        return e
+
+
+def _feature_job(args):
+    name, positions, sk, offsets, cfg = args
+    try:
+        return extract_features(positions, sk, target_offsets=offsets, fps=cfg.fps, legacy=cfg.legacy)
+    except (ValueError, FloatingPointError) as e:
+        return MotionFormatError(name, f"feature extraction failed: {e}")
+
+
+def _pool(jobs: int):
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("fork")) if jobs > 1 else None
+
+
+def _map(pool, fn, items, progress, task, weight=lambda x: 1):
+    """Map in order, inline or over the pool, advancing the progress bar by ``weight``."""
+    if pool is None:
+        for it in items:
+            out = fn(it)
+            progress.advance(task, weight(out))
+            yield out
+        return
+    pending = []
+    window = 16
+    for it in items:
+        pending.append(pool.submit(fn, it))
+        while len(pending) > window:
+            out = pending.pop(0).result()
+            progress.advance(task, weight(out))
+            yield out
+    for fut in pending:
+        out = fut.result()
+        progress.advance(task, weight(out))
+        yield out
+
+
+def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | None = None,
+               command: str | None = None) -> dict:
+    """Run the whole preprocessing; returns a summary dict (also stored in provenance)."""
+    inputs = [resolve_input(p, data_root) for p in cfg.inputs]
+    for p in inputs:
+        if not p.exists():
+            raise FileNotFoundError(f"input {p} does not exist")
+    ann = Annotations.load(resolve_input(cfg.annotations, data_root)) if cfg.annotations else None
+    skeleton = load_skeleton(cfg.skeleton) if cfg.skeleton else None
+    skipped: list[dict] = []
+
+    def bad(origin, err):
+        if not cfg.skip_bad:
+            raise err
+        skipped.append({"input": origin, "error": str(err)})
+
+    def selected():
+        n = 0
+        for path in inputs:
+            for src in iter_sources(path):
+                if not fnmatchcase(src.name, cfg.pattern):
+                    continue
+                if cfg.limit is not None and n >= cfg.limit:
+                    return
+                n += 1
+                yield src
+
+    loaded: list[_Loaded] = []
+    pool = _pool(cfg.jobs)
+    try:
+        with make_progress("frames") as progress:
+            task = progress.add_task("parse", total=None)
+            gen = ((s, skeleton, cfg) for s in selected())
+            for res in _map(pool, _load_job, gen, progress, task,
+                            weight=lambda r: 0 if isinstance(r, Exception) else len(r[0].positions)):
+                if isinstance(res, Exception):
+                    bad(getattr(res, "source", "?"), res)
+                    continue
+                clip, sk = res
+                if skeleton is None:
+                    skeleton = sk
+                elif sk.name != skeleton.name:
+                    bad(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
+                                                   f"{skeleton.name!r} of earlier clips"))
+                    continue
+                loaded.append(clip)
+            if not loaded:
+                raise MotionFormatError(", ".join(map(str, inputs)),
+                                        f"no clip matching {cfg.pattern!r} could be loaded")
+            loaded.sort(key=lambda c: c.name)
+            names = [c.name for c in loaded]
+            if len(set(names)) != len(names):
+                dup = sorted({n for n in names if names.count(n) > 1})[:5]
+                raise MotionFormatError(", ".join(map(str, inputs)), f"clip names occur twice: {dup}")
+
+            split_of: dict[str, str] = {}
+            captions: dict[str, list] = {}
+            if ann is not None:
+                if cfg.limit is None:
+                    ann.check_splits(set(names), cfg.pattern)
+                split_of = ann.split_of()
+                keep = []
+                for c in loaded:
+                    try:
+                        captions[c.name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(c.name)]
+                        keep.append(c)
+                    except MotionFormatError as e:
+                        bad(e.source, e)
+                loaded = keep
+
+            ref = cfg.reference_clip or next((c.name for c in loaded if split_of.get(c.name) == "train"),
+                                             loaded[0].name)
+            ref_clip = next((c for c in loaded if c.name == ref), None)
+            if ref_clip is None:
+                raise KeyError(f"reference_clip {ref!r} is not among the loaded clips")
+            offsets = skeleton_offsets(ref_clip.positions[0], skeleton)
+
+            task2 = progress.add_task("features", total=sum(len(c.positions) for c in loaded))
+            jobs = ((c.name, c.positions, skeleton, offsets, cfg) for c in loaded)
+            clips: list[Clip] = []
+            for c, res in zip(loaded, _map(pool, _feature_job, jobs, progress, task2,
+                                          weight=lambda r: 0 if isinstance(r, Exception) else len(r.features) + 1)):
+                if isinstance(res, Exception):
+                    bad(c.origin, res)
+                    continue
+                clips.append(Clip(c.name, res.features, res.joints, res.local_quats, res.root_translation,
+                                  source=c.origin, source_fps=c.source_fps, split=split_of.get(c.name, "none"),
+                                  labels=c.labels, captions=captions.get(c.name, [])))
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+    train = [c for c in clips if c.split == "train"]
+    stats_split = "train" if train else "all"
+    if not train:
+        info("[yellow]no clip is in the train split: statistics are over all clips[/]")
+    mean, std = mean_std(np.concatenate([c.features for c in (train or clips)]), skeleton.num_joints)
+
+    from motok.config import to_dict
+    prov = Provenance(command=command or command_line(), config=to_dict(cfg),
+                      inputs=hash_inputs(inputs + ([ann.root] if ann else [])), skipped=skipped)
+    write_motion(out, "motion-dataset", prov, clips, skeleton, offsets, cfg.fps, cfg.legacy,
+                 stats=(mean, std, stats_split))
+    counts = {s: sum(c.split == s for c in clips) for s in ("train", "val", "test", "none")}
+    return {
+        "output": str(out), "clips": len(clips), "frames": int(sum(c.num_frames for c in clips)),
+        "source_frames": int(sum(c.source_frames for c in loaded)),
+        "fps": cfg.fps, "skeleton": skeleton.name, "feature_dim": skeleton.feature_dim,
+        "reference_clip": ref, "splits": counts, "skipped": skipped,
+    }

@@ -1,0 +1,43 @@
+"""One place for progress bars: rich bars with rates, silenced by ``--quiet`` or when not a TTY
+in CI logs (where a bar would spam), so every long loop gets the same look."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from rich.console import Console
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskProgressColumn, TextColumn,
+                           TimeElapsedColumn, TimeRemainingColumn)
+
+QUIET = False  # set by the CLI's --quiet
+console = Console(stderr=True)
+
+
+def enabled() -> bool:
+    return not QUIET and os.environ.get("MOTOK_NO_PROGRESS") is None and sys.stderr.isatty()
+
+
+class _Rate(TextColumn):
+    def __init__(self, unit: str):
+        super().__init__("")
+        self.unit = unit
+
+    def render(self, task):
+        from rich.text import Text
+        speed = task.finished_speed or task.speed
+        return Text("" if speed is None else f"{speed:,.0f} {self.unit}/s", style="progress.data.speed")
+
+
+def make_progress(unit: str = "it", extra: str = "") -> Progress:
+    """A rich Progress with count, rate and ETA; ``extra`` is a format string over task.fields."""
+    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TaskProgressColumn(),
+            _Rate(unit), TimeElapsedColumn(), TimeRemainingColumn()]
+    if extra:
+        cols.append(TextColumn(extra))
+    return Progress(*cols, console=console, disable=not enabled(), transient=False)
+
+
+def info(msg: str) -> None:
+    if not QUIET:
+        console.print(msg)

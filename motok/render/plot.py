@@ -1,0 +1,113 @@
+"""Training curves from a metrics JSONL file (one JSON object per line), one subplot per key."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import uuid
+import warnings
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def read_metrics(path: str | os.PathLike) -> list[dict]:
+    """The JSON objects of a JSONL file; malformed or non-object lines are skipped with a warning."""
+    records = []
+    with open(path, encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError as e:
+                warnings.warn(f"{path}: line {lineno}: skipping malformed JSON ({e.msg})", stacklevel=2)
+                continue
+            if not isinstance(rec, dict):
+                warnings.warn(f"{path}: line {lineno}: skipping a {type(rec).__name__}, expected an object",
+                              stacklevel=2)
+                continue
+            records.append(rec)
+    return records
+
+
+def _ema(values: Sequence[float], weight: float) -> list[float]:
+    # Debiased like TensorBoard's smoothing, so the curve does not start pinned at the first value.
+    out, acc = [], 0.0
+    for i, v in enumerate(values, 1):
+        acc = weight * acc + (1.0 - weight) * v
+        out.append(acc / (1.0 - weight**i))
+    return out
+
+
+def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], out_png: str | os.PathLike,
+                keys: Sequence[str] | None = None, x: str = "iteration", *, smooth: float = 0.0,
+                logy: bool | Sequence[str] = False, title: str | None = None) -> Path:
+    """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
+
+    ``keys`` defaults to every numeric field except ``x``, in first-seen order. ``smooth`` in
+    [0, 1) is an exponential-moving-average weight: the raw curve is drawn faintly behind the
+    smoothed one. ``logy`` is True for every subplot or a list of keys to draw on a log scale.
+    """
+    if not 0.0 <= smooth < 1.0:
+        raise ValueError(f"smooth must be in [0, 1), got {smooth}")
+    if isinstance(jsonl_path_or_records, (str, os.PathLike)):
+        records = read_metrics(jsonl_path_or_records)
+        source = str(jsonl_path_or_records)
+    else:
+        records = [dict(r) for r in jsonl_path_or_records]
+        source = "records"
+    if keys is None:
+        keys = list(dict.fromkeys(k for r in records for k, v in r.items() if k != x and _is_number(v)))
+    keys = list(keys)
+    series = {}
+    for k in keys:
+        pts = [(r[x] if _is_number(r.get(x)) else i, r[k]) for i, r in enumerate(records) if _is_number(r.get(k))]
+        series[k] = pts
+    empty = [k for k, pts in series.items() if not pts]
+    if not keys or len(empty) == len(keys):
+        raise ValueError(f"{source}: no numeric values to plot for keys {keys or '(none found)'}")
+
+    # A bare Figure renders through Agg without touching pyplot's global backend or state,
+    # so this works headless and does not disturb an interactive session that calls it.
+    from matplotlib.figure import Figure
+
+    ncols = 1 if len(keys) <= 3 else 2
+    nrows = math.ceil(len(keys) / ncols)
+    fig = Figure(figsize=(6.4 * ncols, 2.6 * nrows + 0.4))
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    log_keys = set(keys) if logy is True else set(logy or ())
+    for ax, k in zip(axes.flat, keys):
+        pts = sorted(series[k], key=lambda p: p[0])
+        ax.set_title(k, fontsize=10, loc="left")
+        ax.grid(True, alpha=0.3)
+        ax.set_xlabel(x, fontsize=8)
+        if not pts:
+            ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="grey")
+            continue
+        xs, ys = zip(*pts)
+        if smooth > 0:
+            ax.plot(xs, ys, color="C0", alpha=0.25, linewidth=1)
+            ax.plot(xs, _ema(ys, smooth), color="C0", linewidth=1.6)
+        else:
+            ax.plot(xs, ys, color="C0", linewidth=1.4)
+        if k in log_keys and min(ys) > 0:
+            ax.set_yscale("log")
+    for ax in axes.flat[len(keys):]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part.png"
+    try:
+        fig.savefig(tmp, dpi=100, format="png")
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out

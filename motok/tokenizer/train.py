@@ -1,0 +1,390 @@
+"""Training the motion VQ-VAE (T2M-GPT Sec. 3.1, Eq. 2-3; training details in Sec. 4.1/appendix).
+
+Loss (Eq. 3 with the smooth-L1 of the official code):
+``L = SL1(X, X_re) + alpha * SL1(V(X), V(X_re)) + beta * ||Z - sg(Z_q)||^2 (+ ||sg(Z) - Z_q||^2 for plain VQ)``
+where ``V`` takes the frame-to-frame difference of the joint-position (``ric``) block by default
+(docs/tokenizer.md explains the choice; ``loss.vel_block`` / ``loss.vel_diff`` select the others).
+
+Runs unchanged under ``torchrun``: with ``WORLD_SIZE > 1`` it joins the process group from the
+environment (gloo on CPU, NCCL on GPU), wraps the model in DistributedDataParallel, splits the
+global batch over ranks, samples data with a per-rank generator and writes only from rank 0.
+Resuming restores model, optimizer, scheduler, the global RNGs and every rank's data generator,
+so ``K`` iterations + resume to ``2K`` is bitwise equal to ``2K`` straight.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+
+from motok import progress as _progress
+from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.checkpoint import MetricsLog, load_bundle, register_kind, rng_state, save_bundle, set_rng_state, sha256_state
+from motok.config import ConfigError, from_dict, load_config, to_dict
+from motok.data.dataset import MotionFile
+from motok.features.humanml3d import feature_slices
+from motok.tokenizer.model import ModelConfig, VQVAE
+from motok.tokenizer.quantize import QuantizerConfig
+
+KIND = "tokenizer"
+register_kind(KIND, (1,))
+
+
+@dataclass
+class LossConfig:
+    alpha_vel: float = 0.5  # weight of the velocity term (paper: 0.5)
+    vel_block: str = "ric"  # "ric": root-relative joint positions (official block) | "all": every feature
+    vel_diff: bool = True  # frame-to-frame difference as in Eq. 3; false reproduces the official code
+    beta_commit: float = 0.02
+    codebook: float = 1.0  # weight of the codebook term; only plain VQ returns one
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 2e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
+    weight_decay: float = 0.0
+    warmup: int = 200  # linear warm-up iterations
+    milestones: list[int] = field(default_factory=list)  # absolute iterations where lr *= gamma
+    gamma: float = 0.05
+    grad_clip: float = 0.0  # 0 = off
+
+
+@dataclass
+class TrainConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    quantizer: QuantizerConfig = field(default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128))
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    iterations: int = 2000
+    batch_size: int = 64  # global: split evenly over the ranks
+    window: int = 64  # frames per training crop
+    split: str = "train"
+    seed: int = 123
+    log_every: int = 50
+    save_every: int = 500
+    device: str = "auto"  # auto | cpu | cuda
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+
+
+class TokenizerError(ValueError):
+    pass
+
+
+# --------------------------------------------------------------------------- data
+
+@dataclass
+class TrainData:
+    features: torch.Tensor  # (F, D) normalized rows of the training clips, concatenated
+    starts: torch.Tensor  # (C,) first row of each usable clip
+    lengths: torch.Tensor  # (C,) frames of each usable clip (>= window)
+    mean: np.ndarray
+    std: np.ndarray
+    meta: dict  # skeleton, offsets, fps, legacy, num_joints, dataset hash
+
+
+def dataset_meta(mf: MotionFile) -> dict:
+    return {"skeleton": mf.skeleton.to_dict(), "offsets": np.asarray(mf.offsets).tolist(), "fps": mf.fps,
+            "legacy": mf.legacy, "num_joints": int(mf.skeleton.num_joints),
+            "feature_dim": int(mf.h5["frames/features"].shape[1])}
+
+
+def load_train_data(path: str | Path, split: str, window: int) -> TrainData:
+    """Read the split's rows once into memory and normalize with the dataset statistics."""
+    with MotionFile(path, "motion-dataset") as mf:
+        idx = mf.split_indices(split)
+        if not idx:
+            raise TokenizerError(f"{path}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
+        mean, std = mf.stats()
+        feats = mf.h5["frames/features"]
+        off = mf.frame_offsets
+        rows, starts, lengths, pos = [], [], [], 0
+        for i in idx:
+            n = int(off[i + 1] - off[i])
+            if n < window:  # too short for one crop (the official loader drops these too)
+                continue
+            rows.append(feats[off[i]:off[i + 1]])
+            starts.append(pos)
+            lengths.append(n)
+            pos += n
+        if not rows:
+            raise TokenizerError(f"{path}: no {split} clip has {window} frames; lower `window`")
+        meta = dataset_meta(mf)
+    x = (np.concatenate(rows).astype(np.float32) - mean) / std
+    return TrainData(torch.from_numpy(x), torch.tensor(starts), torch.tensor(lengths), mean, std, meta)
+
+
+class WindowSampler:
+    """Random ``window``-frame crops: a clip uniformly, then a start uniformly (official loader).
+
+    The generator is separate from the global RNG so that ranks draw different data while the
+    global RNG (quantizer resets, dropout) stays in lock-step on every rank.
+    """
+
+    def __init__(self, data: TrainData, window: int, batch: int, seed: int, rank: int):
+        self.data, self.window, self.batch = data, window, batch
+        self.gen = torch.Generator().manual_seed(seed * 1_000_003 + 7919 * (rank + 1))
+        self.ar = torch.arange(window)
+
+    def sample(self) -> torch.Tensor:
+        d, g = self.data, self.gen
+        clip = torch.randint(len(d.starts), (self.batch,), generator=g)
+        span = (d.lengths[clip] - self.window + 1).double()
+        off = (torch.rand(self.batch, generator=g, dtype=torch.float64) * span).long()
+        rows = (d.starts[clip] + off)[:, None] + self.ar
+        return d.features[rows]
+
+
+# --------------------------------------------------------------------------- loss, optimizer
+
+def vqvae_loss(recon: torch.Tensor, target: torch.Tensor, losses: dict, cfg: LossConfig,
+               num_joints: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """T2M-GPT Eq. 3 (smooth-L1 variant); returns the total and its detached parts."""
+    target = target[:, : recon.shape[1]]
+    rec = F.smooth_l1_loss(recon, target)
+    if cfg.vel_block == "ric":
+        sl = feature_slices(num_joints)["ric"]
+        a, b = recon[..., sl], target[..., sl]
+    elif cfg.vel_block == "all":
+        a, b = recon, target
+    else:
+        raise ConfigError(f"loss.vel_block {cfg.vel_block!r}: choose ric or all")
+    if cfg.vel_diff:
+        a, b = a[:, 1:] - a[:, :-1], b[:, 1:] - b[:, :-1]
+    vel = F.smooth_l1_loss(a, b)
+    commit = losses["commit"]
+    codebook = losses.get("codebook", torch.zeros((), device=recon.device))
+    total = rec + cfg.alpha_vel * vel + cfg.beta_commit * commit + cfg.codebook * codebook
+    parts = {"loss": total, "recon": rec, "vel": vel, "commit": commit, "codebook": codebook}
+    return total, {k: v.detach() for k, v in parts.items()}
+
+
+def lr_factor(it: int, cfg: OptimConfig) -> float:
+    """Linear warm-up over ``warmup`` iterations, then x gamma at each milestone (Sec. 4.1)."""
+    if it < cfg.warmup:
+        return (it + 1) / (cfg.warmup + 1)
+    return cfg.gamma ** sum(it >= m for m in cfg.milestones)
+
+
+def make_optimizer(model: torch.nn.Module, cfg: OptimConfig):
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: lr_factor(i, cfg))
+    return opt, sched
+
+
+# --------------------------------------------------------------------------- distributed
+
+@dataclass
+class Dist:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    owned: bool = False  # we initialized the process group, so we tear it down
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed() -> Dist:
+    """Join the process group torchrun describes in the environment (a no-op when alone)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist()
+    owned = False
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        owned = True
+    return Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")), owned)
+
+
+def pick_device(name: str, d: Dist) -> torch.device:
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise TokenizerError("device=cuda but no GPU is available")
+    return torch.device("cuda", d.local_rank)
+
+
+def gather(obj, d: Dist) -> list:
+    if d.world == 1:
+        return [obj]
+    out = [None] * d.world
+    dist.all_gather_object(out, obj)
+    return out
+
+
+# --------------------------------------------------------------------------- config & bundle
+
+def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: bool = False) -> TrainConfig:
+    """Recipe + overrides; on resume the saved config is the base and the recipe must not change it."""
+    if not resume:
+        return load_config(TrainConfig, recipe, overrides)
+    meta, _, _ = load_bundle(run, KIND)
+    saved = meta["config"]
+    cfg = load_config(TrainConfig, None, overrides, base=saved)
+    if recipe is not None:
+        fresh = to_dict(load_config(TrainConfig, recipe, overrides))
+        changed = [k for k in ("model", "quantizer", "loss", "window") if fresh[k] != to_dict(cfg)[k]]
+        if changed:
+            raise ConfigError(f"--resume: the recipe changes {changed} of the saved run {run}")
+    for k in ("model", "quantizer", "window", "batch_size", "seed"):
+        if to_dict(cfg)[k] != saved[k]:
+            raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
+    return cfg
+
+
+def build_model(meta_or_cfg: dict | TrainConfig, feature_dim: int) -> VQVAE:
+    cfg = meta_or_cfg if isinstance(meta_or_cfg, TrainConfig) else from_dict(TrainConfig, meta_or_cfg)
+    return VQVAE(feature_dim, cfg.model, cfg.quantizer)
+
+
+def load_tokenizer(run: str | Path, device: str | torch.device = "cpu") -> tuple[VQVAE, dict]:
+    """A trained tokenizer in eval mode and its bundle metadata (config, dataset meta)."""
+    meta, state, _ = load_bundle(run, KIND)
+    model = build_model(meta["config"], int(meta["extra"]["feature_dim"]))
+    model.load_state_dict(state)
+    return model.to(device).eval(), meta
+
+
+# --------------------------------------------------------------------------- loop
+
+def _stat_mean(v, n: int) -> float:
+    vals = [float(x) for x in (v if isinstance(v, (list, tuple)) else [v])[:n] if x is not None]
+    return sum(vals) / len(vals) if vals else float("nan")
+
+
+def train(cfg: TrainConfig, data_path: str | Path, run: str | Path, resume: bool = False,
+          stop_at: int | None = None, command: str | None = None) -> dict:
+    """Train (or resume) a tokenizer into the bundle folder ``run``; returns a summary.
+
+    ``stop_at`` ends the run early at that iteration with a checkpoint, as an interruption would
+    (the LR schedule still follows ``cfg.iterations``).
+    """
+    run, data_path = Path(run), Path(data_path)
+    d = init_distributed()
+    try:
+        return _train(cfg, data_path, run, resume, stop_at, command, d)
+    finally:
+        if d.owned:
+            dist.destroy_process_group()
+
+
+def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
+    if cfg.batch_size % d.world:
+        raise TokenizerError(f"batch_size {cfg.batch_size} does not split over {d.world} ranks")
+    if cfg.window % 2 ** cfg.model.down_t:
+        raise TokenizerError(f"window {cfg.window} is not a multiple of the rate {2 ** cfg.model.down_t}")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    device = pick_device(cfg.device, d)
+    inputs = hash_inputs([data_path])
+    data_hash = inputs[str(data_path)]
+    data = load_train_data(data_path, cfg.split, cfg.window)
+    J = data.meta["num_joints"]
+
+    # Same seed on every rank: identical initial weights and lock-step global RNG draws.
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    model = build_model(cfg, data.features.shape[1])
+    model.set_stats(data.mean, data.std)
+    model.to(device).train()
+    opt, sched = make_optimizer(model, cfg.optim)
+    sampler = WindowSampler(data, cfg.window, cfg.batch_size // d.world, cfg.seed, d.rank)
+
+    start = 0
+    if resume:
+        meta, state, ts = load_bundle(run, KIND, with_train_state=True)
+        if meta["extra"].get("dataset_sha256") != data_hash:
+            raise TokenizerError(f"--resume: {data_path} is not the data set {run} was trained on (hash differs)")
+        if int(ts["world_size"]) != d.world:
+            raise TokenizerError(f"--resume: saved with {int(ts['world_size'])} ranks, now {d.world}")
+        model.load_state_dict(state)
+        opt.load_state_dict(ts["optimizer"])
+        sched.load_state_dict(ts["scheduler"])
+        set_rng_state(ts["rng"])
+        sampler.gen.set_state(ts["data_rng"][d.rank])
+        start = int(ts["iteration"])
+
+    net = model
+    if d.world > 1:
+        # Codebooks that can go unused in a step (plain-VQ RVQ under dropout) need the slow path.
+        unused = any(p.requires_grad for p in model.quantizer.parameters())
+        # broadcast_buffers=False: EMA codebooks must agree through the quantizer's own all-reduce,
+        # which the DDP test then checks, instead of being overwritten from rank 0 each step.
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[d.local_rank] if device.type == "cuda" else None,
+            broadcast_buffers=False, find_unused_parameters=unused)
+
+    log = MetricsLog(run / "metrics.jsonl", resume_from=start if resume else None) if d.main else None
+    end = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
+    frames_per_it = cfg.batch_size * cfg.window
+    acc: dict[str, float] = {}
+    n_acc, t_log, last = 0, time.perf_counter(), {}
+    dev_meta = {**data.meta, "dataset": str(data_path), "dataset_sha256": data_hash,
+                "stats_split": "train", "rate": model.rate, "num_codebooks": model.num_codebooks,
+                "codebook_size": int(model.quantizer.codebook_size), "code_dim": int(model.quantizer.dim)}
+
+    def save(it: int):
+        states = gather(sampler.gen.get_state(), d)
+        hashes = gather(sha256_state(model.state_dict()), d)
+        if not d.main:
+            return
+        if len(set(hashes)) > 1:
+            _progress.info(f"[bold red]warning:[/] ranks diverged at iteration {it}: {hashes}")
+        ts = {"iteration": it, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+              "rng": rng_state(), "data_rng": torch.stack(states), "world_size": d.world}
+        prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
+        save_bundle(run, KIND, model.state_dict(), to_dict(cfg), prov, train_state=ts,
+                    extra={**dev_meta, "iteration": it, "world_size": d.world, "rank_state_sha256": hashes,
+                           "last_metrics": last})
+
+    with _progress.make_progress("it", extra="loss {task.fields[loss]:.4f} usage {task.fields[usage]:.2f}") as bar:
+        task = bar.add_task("tokenizer", total=end, completed=start, loss=float("nan"), usage=float("nan"))
+        if not d.main:
+            bar.stop()
+        for it in range(start + 1, end + 1):
+            x = sampler.sample().to(device, non_blocking=True)
+            out = net(x)
+            total, parts = vqvae_loss(out.recon, x, out.losses, cfg.loss, J)
+            opt.zero_grad(set_to_none=True)
+            total.backward()
+            if cfg.optim.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
+            opt.step()
+            sched.step()
+
+            m = out.stats.get("num_active_codebooks", model.num_codebooks)
+            parts = {k: float(v) for k, v in parts.items()}
+            parts["usage"] = _stat_mean(out.stats.get("usage"), m)
+            parts["perplexity"] = _stat_mean(out.stats.get("perplexity"), m)
+            parts["dead"] = _stat_mean(out.stats.get("dead"), m)
+            if not math.isfinite(parts["loss"]):
+                raise TokenizerError(f"loss is {parts['loss']} at iteration {it}; lower optim.lr or check the data")
+            for k, v in parts.items():
+                acc[k] = acc.get(k, 0.0) + v
+            n_acc += 1
+            if d.main:
+                bar.update(task, advance=1, loss=parts["loss"], usage=parts["usage"])
+            if it % cfg.log_every == 0 or it == end:
+                dt = time.perf_counter() - t_log
+                last = {"iteration": it, **{k: v / n_acc for k, v in acc.items()},
+                        "lr": sched.get_last_lr()[0], "it_s": n_acc / dt, "frames_s": n_acc * frames_per_it / dt,
+                        "usage_per_codebook": [float(u) for u in out.stats.get("usage", [])],
+                        "perplexity_per_codebook": [float(u) for u in out.stats.get("perplexity", [])]}
+                if log is not None:
+                    log.log(last)
+                acc, n_acc, t_log = {}, 0, time.perf_counter()
+            if it % cfg.save_every == 0 or it == end:
+                save(it)
+    return {"run": str(run), "iteration": end, "iterations": cfg.iterations, "world_size": d.world,
+            **{k: last.get(k) for k in ("loss", "recon", "usage", "perplexity", "it_s", "frames_s")}}

@@ -1,0 +1,60 @@
+"""Artifact I/O: kinds, versions, provenance, atomic writes."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from motok import __version__
+from motok.artifacts import ArtifactError, Provenance, hash_inputs, open_artifact, provenance_of, write_artifact
+
+
+def _prov(**kw):
+    return Provenance(command="motok test", config={"a": 1}, **kw)
+
+
+def test_roundtrip_kind_version_provenance(tmp_path):
+    src = tmp_path / "input.bin"
+    src.write_bytes(b"motion")
+    p = tmp_path / "x.h5"
+    with write_artifact(p, "motion", _prov(inputs=hash_inputs([src]))) as f:
+        f.create_dataset("a", data=np.arange(3))
+    with open_artifact(p, "motion") as f:
+        prov = provenance_of(f)
+        assert f.attrs["kind"] == "motion" and int(f.attrs["schema_version"]) == 1
+    assert prov.motok_version == __version__ and prov.config == {"a": 1}
+    # sha256 of b"motion"
+    import hashlib
+    assert prov.inputs[str(src)] == hashlib.sha256(b"motion").hexdigest()
+
+
+def test_crash_leaves_no_file(tmp_path):
+    p = tmp_path / "x.h5"
+    with pytest.raises(RuntimeError):
+        with write_artifact(p, "motion", _prov()) as f:
+            f.create_dataset("a", data=np.arange(3))
+            raise RuntimeError("boom")
+    assert not p.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_wrong_kind_and_version_are_named(tmp_path):
+    p = tmp_path / "x.h5"
+    with write_artifact(p, "motion", _prov()):
+        pass
+    with pytest.raises(ArtifactError, match="expected a motion-dataset artifact, found kind 'motion'"):
+        open_artifact(p, "motion-dataset")
+    with h5py.File(p, "a") as f:
+        f.attrs["schema_version"] = 99
+    with pytest.raises(ArtifactError, match="schema version 99 is not supported"):
+        open_artifact(p, "motion")
+    plain = tmp_path / "plain.h5"
+    with h5py.File(plain, "w"):
+        pass
+    with pytest.raises(ArtifactError, match="not a motok artifact"):
+        open_artifact(plain)
+    junk = tmp_path / "junk.h5"
+    junk.write_text("hello")
+    with pytest.raises(ArtifactError, match="not an HDF5 file"):
+        open_artifact(junk)

@@ -141,3 +141,20 @@ def test_data_root_resolution(monkeypatch, tmp_path):
     monkeypatch.setenv("MOTOK_DATA", str(tmp_path))
     assert resolve_data_root() == tmp_path
     assert resolve_data_root(tmp_path) == tmp_path
+
+
+def test_npy_joints_through_the_whole_pipeline_match_golden_features(golden_dir, golden_features, tmp_path):
+    """HumanML3D's own joints, preprocessed as a .npy input with the legacy switch, give back the
+    official feature vectors (the Gaussian filter's reach from the clip end excluded)."""
+    out = tmp_path / "golden.h5"
+    cfg = PreprocessConfig(inputs=[str(golden_dir / "new_joints_012314.npy")], annotations=None,
+                           skeleton="smpl22", legacy=True)
+    summary = preprocess(cfg, out)
+    assert summary["clips"] == 1 and summary["feature_dim"] == 263
+    with MotionFile(out) as mf:
+        feats = mf.frames("features", "new_joints_012314")
+        assert mf.splits == ["none"] and mf.h5["stats"].attrs["split"] == "all"
+    assert feats.shape == (169, 263)
+    for block, sl in feature_slices(22).items():
+        err = np.abs(feats[:89, sl] - golden_features[:89, sl]).max()
+        assert err < 1e-4, f"{block}: {err}"

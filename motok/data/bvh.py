@@ -261,6 +261,8 @@ def _parse_hierarchy(header: bytes, src: str, motion_line: int | None) -> _Layou
                                 f"{'MOTION' if motion_line else 'the end of the file'}", motion_line or last)
     if not names:
         raise MotionFormatError(src, "expected a ROOT joint after HIERARCHY", last)
+    if i < n and toks[i] == "}":
+        fail(f"unbalanced braces: '}}' after the hierarchy closed at line {tline[closed]}", i)
     if i < n or motion_line is None:
         found = repr(toks[i]) if i < n else "the end of the file"
         raise MotionFormatError(src, f"expected a 'MOTION' line after the hierarchy (closed at line "
@@ -345,7 +347,7 @@ def parse_bvh(data: bytes | str, source: str = "<bvh>") -> BvhMotion:
     src = str(source)
     data = data.encode("utf-8") if isinstance(data, str) else bytes(data)
     data = data[3:] if data.startswith(b"\xef\xbb\xbf") else data
-    if not data.strip():
+    if not data or data.isspace():
         raise MotionFormatError(src, "empty file, expected BVH text starting with HIERARCHY", 1)
     m = _MOTION_RE.search(data)
     lay = _layout(data[:m.start()] if m else data, src, data.count(b"\n", 0, m.start()) + 1 if m else None)

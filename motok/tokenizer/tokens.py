@@ -66,7 +66,7 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
                 if len(feats) < rate:
                     skipped.append({"input": mf.names[i], "error": f"{len(feats)} frames < one token ({rate})"})
                     continue
-                idx = model.encode_features(torch.from_numpy(np.asarray(feats))[None], m)[0]
+                idx = model.encode_features(torch.from_numpy(np.asarray(feats))[None], m)[0, :, :m]
                 kept.append((i, len(feats)))
                 indices.append(idx.numpy().astype(np.int32))
                 bar.advance(task, len(feats))
@@ -245,7 +245,7 @@ def evaluate(run: str | Path, data: str | Path, split: str = "test", num_codeboo
                 if T < 3:
                     continue
                 gt = gt[:T]
-                codes = model.encode_features(torch.from_numpy(gt)[None], m)
+                codes = model.encode_features(torch.from_numpy(gt)[None], m)[..., :m]
                 pred = model.decode_features(codes, m)[0].numpy()
                 for n in range(m):
                     c = codes[0, :, n].numpy()

@@ -43,8 +43,8 @@ class LossConfig:
     alpha_vel: float = 0.5  # weight of the velocity term (paper: 0.5)
     vel_block: str = "ric"  # "ric": root-relative joint positions (official block) | "all": every feature
     vel_diff: bool = True  # frame-to-frame difference as in Eq. 3; false reproduces the official code
-    beta_commit: float = 0.02
-    codebook: float = 1.0  # weight of the codebook term; only plain VQ returns one
+    beta_commit: float = 0.02  # commitment weight beta; multiplied by quantizer.beta (default 1)
+    codebook: float = 1.0  # weight of the codebook term ||sg(Z) - Z_q||^2 (Eq. 2); zero for EMA kinds
 
 
 @dataclass
@@ -146,7 +146,7 @@ class WindowSampler:
 # --------------------------------------------------------------------------- loss, optimizer
 
 def vqvae_loss(recon: torch.Tensor, target: torch.Tensor, losses: dict, cfg: LossConfig,
-               num_joints: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+               num_joints: int, beta_scale: float = 1.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """T2M-GPT Eq. 3 (smooth-L1 variant); returns the total and its detached parts."""
     target = target[:, : recon.shape[1]]
     rec = F.smooth_l1_loss(recon, target)
@@ -162,7 +162,7 @@ def vqvae_loss(recon: torch.Tensor, target: torch.Tensor, losses: dict, cfg: Los
     vel = F.smooth_l1_loss(a, b)
     commit = losses["commit"]
     codebook = losses.get("codebook", torch.zeros((), device=recon.device))
-    total = rec + cfg.alpha_vel * vel + cfg.beta_commit * commit + cfg.codebook * codebook
+    total = rec + cfg.alpha_vel * vel + cfg.beta_commit * beta_scale * commit + cfg.codebook * codebook
     parts = {"loss": total, "recon": rec, "vel": vel, "commit": commit, "codebook": codebook}
     return total, {k: v.detach() for k, v in parts.items()}
 
@@ -213,6 +213,11 @@ def pick_device(name: str, d: Dist) -> torch.device:
     if not torch.cuda.is_available():
         raise TokenizerError("device=cuda but no GPU is available")
     return torch.device("cuda", d.local_rank)
+
+
+def _ddp_args() -> set[str]:
+    import inspect
+    return set(inspect.signature(torch.nn.parallel.DistributedDataParallel.__init__).parameters)
 
 
 def gather(obj, d: Dist) -> list:
@@ -276,6 +281,8 @@ def train(cfg: TrainConfig, data_path: str | Path, run: str | Path, resume: bool
         return _train(cfg, data_path, run, resume, stop_at, command, d)
     finally:
         if d.owned:
+            # Leaving while a peer is still in a collective aborts gloo's threads.
+            dist.barrier()
             dist.destroy_process_group()
 
 
@@ -312,18 +319,20 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
         opt.load_state_dict(ts["optimizer"])
         sched.load_state_dict(ts["scheduler"])
         set_rng_state(ts["rng"])
-        sampler.gen.set_state(ts["data_rng"][d.rank])
+        sampler.gen.set_state(ts["data_rng"][d.rank].clone())
         start = int(ts["iteration"])
 
     net = model
     if d.world > 1:
         # Codebooks that can go unused in a step (plain-VQ RVQ under dropout) need the slow path.
         unused = any(p.requires_grad for p in model.quantizer.parameters())
-        # broadcast_buffers=False: EMA codebooks must agree through the quantizer's own all-reduce,
-        # which the DDP test then checks, instead of being overwritten from rank 0 each step.
+        # No per-step buffer broadcast: EMA codebooks must agree through the quantizer's own
+        # all-reduce (which the DDP test checks), not by being overwritten from rank 0 each step.
+        sync = ({"forward_sync_buffers": False} if "forward_sync_buffers" in _ddp_args()
+                else {"broadcast_buffers": False})
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[d.local_rank] if device.type == "cuda" else None,
-            broadcast_buffers=False, find_unused_parameters=unused)
+            find_unused_parameters=unused, **sync)
 
     log = MetricsLog(run / "metrics.jsonl", resume_from=start if resume else None) if d.main else None
     end = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
@@ -355,7 +364,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
         for it in range(start + 1, end + 1):
             x = sampler.sample().to(device, non_blocking=True)
             out = net(x)
-            total, parts = vqvae_loss(out.recon, x, out.losses, cfg.loss, J)
+            total, parts = vqvae_loss(out.recon, x, out.losses, cfg.loss, J, cfg.quantizer.beta)
             opt.zero_grad(set_to_none=True)
             total.backward()
             if cfg.optim.grad_clip > 0:

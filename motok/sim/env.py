@@ -1,0 +1,262 @@
+"""N humanoids on one model, tracking reference motions: the batched imitation environment.
+
+``reset(ids)`` puts environments in a reference state (reference state initialisation: a random
+clip and frame, or given ones); ``step(actions)`` sets PD targets ``q_hat = q + a`` (residual
+actions on the current hinge positions, as the hybrid-latent paper's code does), clipped to the
+joint ranges, holds them for ``substeps`` physics steps, and returns
+
+    obs (N, D_s)         Eq. 7 observation, heading frame
+    goal (N, D_g)        Eq. 9 differences to the next K reference frames
+    reward (dict)        Eq. 10 terms ``pos``, ``rot``, ``vel``, ``ang_vel`` and ``total``, each (N,)
+    terminated (N,)      a body more than 0.5 m from its reference, a non-finite action
+                         (with ``nan_actions="terminate"``) or a diverged simulation
+    truncated (N,)       time limit or the end of the reference clip, never set with terminated
+    info (dict)          ``clip``, ``frame``, ``max_body_error``, ``diverged``, ``invalid_action``
+
+There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
+episodes) and then calls ``reset(ids)`` for the finished environments.
+
+Stepping lives behind :class:`Stepper` (set full states, step all environments with fixed
+controls for a few substeps, report the ones that diverged). :class:`RolloutStepper` runs it
+on MuJoCo's multithreaded ``rollout`` (C++ threads, GIL released); a GPU batch simulator
+(MuJoCo Warp) is another implementation of the same three methods (docs/sim.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from motok.sim.humanoid import Humanoid, load_humanoid
+from motok.sim.obs import Bodies, RewardConfig, TreeKinematics, goal, max_body_error, observation, reward_terms
+from motok.sim.reference import ReferenceLibrary
+
+RESET_CLEARANCE = 0.002  # m: a reference pose whose geometry dips below the floor is lifted to this height
+
+
+class Stepper(Protocol):
+    """The only code that advances physics. Arrays are host numpy, ``(N, .)``."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+
+    def set_state(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None: ...
+
+    def step(self, ctrl: np.ndarray) -> np.ndarray:
+        """Advance every environment by ``substeps`` with ``ctrl (N, nu)`` held; returns a
+        ``(N,)`` mask of environments whose simulation diverged (MuJoCo reset them)."""
+        ...
+
+
+class RolloutStepper:
+    """CPU stepping with ``mujoco.rollout``: its C++ thread pool steps chunks of environments in
+    parallel without the GIL, and one call covers all substeps of a control step."""
+
+    def __init__(self, model, num_envs: int, substeps: int, nthread: int = 2):
+        import mujoco
+        from mujoco import rollout
+
+        self.model, self.n, self.substeps = model, num_envs, substeps
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        self.nstate = mujoco.mj_stateSize(model, spec)
+        self.nthread = max(1, min(int(nthread), num_envs))
+        self._pool = rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
+        self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
+        self._models = [model] * num_envs
+        d = self._datas[0]
+        self.state = np.zeros((num_envs, self.nstate))
+        mujoco.mj_getState(model, d, self.state[0], spec)
+        self.state[:] = self.state[0]
+        # Locate qpos/qvel inside a state row by writing marked values through MjData.
+        d.time, d.qpos[:], d.qvel[:] = -1.0, np.arange(model.nq) + 1e3, np.arange(model.nv) + 1e6
+        probe = np.zeros(self.nstate)
+        mujoco.mj_getState(model, d, probe, spec)
+        self._t = int(np.flatnonzero(probe == -1.0)[0])
+        self._q = int(np.flatnonzero(probe == 1e3)[0])
+        self._v = int(np.flatnonzero(probe == 1e6)[0])
+        self.state[:, self._t] = 1.0  # MuJoCo's reset of a diverged sim sets time 0: a visible marker
+        self._ctrl = np.zeros((num_envs, substeps, model.nu))
+        self._out = np.zeros((num_envs, substeps, self.nstate))
+        self._chunk = max(1, num_envs // (4 * self.nthread))
+
+    @property
+    def qpos(self) -> np.ndarray:
+        return self.state[:, self._q:self._q + self.model.nq]
+
+    @property
+    def qvel(self) -> np.ndarray:
+        return self.state[:, self._v:self._v + self.model.nv]
+
+    def set_state(self, ids, qpos, qvel) -> None:
+        self.state[ids, self._q:self._q + self.model.nq] = qpos
+        self.state[ids, self._v:self._v + self.model.nv] = qvel
+        self.state[ids, self._t] = 1.0
+
+    def step(self, ctrl: np.ndarray) -> np.ndarray:
+        self._ctrl[:] = ctrl[:, None]
+        t0 = self.state[:, self._t].copy()
+        datas = self._datas if self.nthread > 1 else self._datas[:1]
+        self._pool.rollout(self._models, datas, self.state, self._ctrl, skip_checks=True, nstep=self.substeps,
+                           state=self._out, sensordata=None, chunk_size=self._chunk)
+        self.state[:] = self._out[:, -1]
+        expected = t0 + 0.5 * self.substeps * self.model.opt.timestep
+        return (self.state[:, self._t] < expected) | ~np.isfinite(self.state).all(1)
+
+
+@dataclass
+class EnvConfig:
+    num_envs: int = 16
+    control_hz: float | None = None  # None: the humanoid's (30 Hz by default); the library must match
+    max_episode_seconds: float = 10.0
+    goal_frames: int = 1  # K reference frames ahead in the goal (Eq. 9)
+    termination_distance: float = 0.5  # m, any body from its reference
+    early_termination: bool = True
+    nthread: int = 2
+    action_scale: float = 1.0  # q_hat = q + action_scale * a
+    nan_actions: str = "raise"  # or "terminate": the env is terminated, the others step normally
+    seed: int = 0
+    reward: RewardConfig = field(default_factory=RewardConfig)
+
+
+class HumanoidEnv:
+    """Batched imitation environment; see the module docstring for the step contract."""
+
+    def __init__(self, humanoid: Humanoid | str, library: ReferenceLibrary, cfg: EnvConfig | None = None,
+                 stepper: Stepper | None = None):
+        self.hum = load_humanoid(humanoid) if not isinstance(humanoid, Humanoid) else humanoid
+        self.lib, self.cfg = library, cfg or EnvConfig()
+        c, m = self.cfg, self.hum.model
+        hz = float(c.control_hz or self.hum.control_hz)
+        if abs(library.fps - hz) > 1e-6:
+            raise ValueError(f"the reference library is at {library.fps:g} Hz but the control rate is {hz:g} Hz")
+        if c.nan_actions not in ("raise", "terminate"):
+            raise ValueError(f"nan_actions must be 'raise' or 'terminate', not {c.nan_actions!r}")
+        self.dt = 1.0 / hz
+        self.substeps = max(1, int(round(self.dt / m.opt.timestep)))
+        self.num_envs = N = c.num_envs
+        self.stepper = stepper or RolloutStepper(m, N, self.substeps, c.nthread)
+        self.fk = TreeKinematics(self.hum)
+        self.hinge_adr = self.hum.hinge_qpos_adr
+        self.ctrl_low, self.ctrl_high = m.actuator_ctrlrange[:, 0].copy(), m.actuator_ctrlrange[:, 1].copy()
+        self.end_effectors = list(self.hum.skeleton.end_effectors)
+        self.max_steps = max(1, int(round(c.max_episode_seconds * hz)))
+        self.rng = np.random.default_rng(c.seed)
+        self.clip = np.zeros(N, dtype=np.int64)
+        self.frame = np.zeros(N, dtype=np.int64)  # reference frame the simulation is at, within the clip
+        self.steps = np.zeros(N, dtype=np.int64)
+        self.limit = np.ones(N, dtype=np.int64)
+        self.bodies: Bodies | None = None
+        self._obs, self._goal = None, None
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def action_dim(self) -> int:
+        return self.hum.model.nu
+
+    @property
+    def obs_dim(self) -> int:
+        return 1 + 6 + 3 + 3 + 2 * self.action_dim + 3 * len(self.end_effectors)
+
+    @property
+    def goal_dim(self) -> int:
+        return self.cfg.goal_frames * len(self.hum.skeleton.joints) * 15
+
+    @property
+    def qpos(self) -> np.ndarray:
+        return self.stepper.qpos
+
+    @property
+    def qvel(self) -> np.ndarray:
+        return self.stepper.qvel
+
+    # ------------------------------------------------------------------ reference access
+    def _ref(self, clips: np.ndarray, frames: np.ndarray) -> Bodies:
+        last = self.lib.starts[clips + 1] - 1
+        g = np.minimum(self.lib.starts[clips] + frames, last)
+        L = self.lib
+        return Bodies.from_quat(L.body_pos[g], L.body_quat[g], L.body_vel[g], L.body_angvel[g])
+
+    def _goal_refs(self, ids: np.ndarray) -> Bodies:
+        ahead = np.arange(1, self.cfg.goal_frames + 1)
+        return self._ref(self.clip[ids, None], self.frame[ids, None] + ahead)
+
+    # ------------------------------------------------------------------ API
+    def reset(self, ids=None, clips=None, frames=None) -> tuple[np.ndarray, np.ndarray]:
+        """Reference state initialisation for ``ids`` (all by default): random clip and frame from
+        the env's seeded generator unless ``clips``/``frames`` (names or indices) are given.
+        Returns the full ``(obs, goal)`` arrays, the other environments' rows unchanged."""
+        N = self.num_envs
+        ids = np.arange(N) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        if ids.size and (ids.min() < 0 or ids.max() >= N):
+            raise IndexError(f"environment ids must be in 0..{N - 1}, got {ids.tolist()}")
+        if self._obs is None and len(ids) != N:
+            self.reset()  # every environment needs a state before a subset can be reset
+        K = self.cfg.goal_frames
+        if clips is None:
+            c, f = self.lib.sample(len(ids), self.rng, horizon=K + 1)
+        else:
+            c = np.array([self.lib.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), ids.shape)])
+            f = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), ids.shape).copy()
+            bad = (f < 0) | (f + K + 2 > self.lib.lengths[c])
+            if bad.any():
+                raise ValueError(f"start frames {f[bad].tolist()} leave fewer than {K} reference frames ahead")
+        g = self.lib.starts[c] + f
+        qpos, qvel = self.lib.qpos[g].copy(), self.lib.qvel[g].copy()
+        qpos[:, 2] += np.maximum(RESET_CLEARANCE - self.lib.lowest[g], 0.0)
+        self.stepper.set_state(ids, qpos, qvel)
+        self.clip[ids], self.frame[ids], self.steps[ids] = c, f, 0
+        # The last step's goal still needs K frames ahead: frame + K <= last frame of the clip.
+        self.limit[ids] = np.minimum(self.max_steps, self.lib.lengths[c] - 1 - f - K)
+        self._update(ids)
+        return self._obs.copy(), self._goal.copy()
+
+    def _update(self, ids: np.ndarray) -> None:
+        """Recompute body states (all envs) and the observation and goal rows of ``ids``."""
+        qpos, qvel = self.stepper.qpos, self.stepper.qvel
+        self.bodies = self.fk(qpos, qvel)
+        if self._obs is None:
+            self._obs = np.zeros((self.num_envs, self.obs_dim))
+            self._goal = np.zeros((self.num_envs, self.goal_dim))
+        sim = self.bodies.take(ids)
+        self._obs[ids] = observation(qpos[ids], qvel[ids], sim, self.end_effectors)
+        self._goal[ids] = goal(sim, self._goal_refs(ids))
+
+    def step(self, actions: np.ndarray):
+        """Apply residual actions ``(N, nu)``; see the module docstring for what is returned."""
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.num_envs, self.action_dim):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_dim}), got {a.shape}")
+        invalid = ~np.isfinite(a).all(1)
+        if invalid.any():
+            if self.cfg.nan_actions == "raise":
+                raise ValueError(f"non-finite actions for environments {np.flatnonzero(invalid).tolist()}; "
+                                 "nothing was stepped (set nan_actions='terminate' to end those episodes instead)")
+            a = np.where(invalid[:, None], 0.0, a)
+        q = self.stepper.qpos[:, self.hinge_adr]
+        ctrl = np.clip(q + self.cfg.action_scale * a, self.ctrl_low, self.ctrl_high)
+        diverged = self.stepper.step(ctrl)
+        self.frame += 1
+        self.steps += 1
+        all_ids = np.arange(self.num_envs)
+        self._update(all_ids)
+        ref = self._ref(self.clip, self.frame)
+        rewards = reward_terms(self.bodies, ref, self.cfg.reward)
+        err = max_body_error(self.bodies, ref)
+        fell = err > self.cfg.termination_distance if self.cfg.early_termination else np.zeros_like(diverged)
+        terminated = fell | diverged | invalid
+        truncated = (self.steps >= self.limit) & ~terminated
+        for v in rewards.values():
+            v[diverged | invalid] = 0.0
+        info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "max_body_error": err,
+                "diverged": diverged, "invalid_action": invalid, "episode_steps": self.steps.copy()}
+        return self._obs.copy(), self._goal.copy(), rewards, terminated, truncated, info
+
+    def reference_qpos(self, ids=None) -> np.ndarray:
+        """The reference qpos at each env's current frame (for PD tracking baselines)."""
+        ids = np.arange(self.num_envs) if ids is None else np.asarray(ids)
+        last = self.lib.starts[self.clip[ids] + 1] - 1
+        return self.lib.qpos[np.minimum(self.lib.starts[self.clip[ids]] + self.frame[ids], last)]

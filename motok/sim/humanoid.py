@@ -1,0 +1,505 @@
+"""The MuJoCo humanoid, generated from a motion dataset's skeleton (``motok sim build-humanoid``).
+
+One body per skeleton joint, named after it, so the body positions *are* the dataset's joint
+positions and no retargeting is needed. MuJoCo is Z-up and the datasets are Y-up facing +Z
+with the left on +X; the map ``(x, y, z)_data -> (z, x, y)_mujoco`` is a proper rotation that
+puts the character's forward on +X, its left on +Y and up on +Z (MuJoCo's own convention).
+
+Rest geometry: bone lengths from the dataset's uniform skeleton; directions from the T-pose,
+except at branching joints (hips, chest), where the children keep the mocap's own sibling
+geometry (a Procrustes mean over sampled frames), and at the ankle, whose toe bone is pitched
+down to the median stance angle so that the box sole lies flat on the floor at qpos0.
+
+Joints: a free root; three hinges per ball joint, ordered so the middle hinge is the twist
+about the child bone (twist is small because the data has none, so the Euler decomposition
+stays far from gimbal lock); one hinge for knees and elbows (the parents of feet and hands).
+Leaves (head, hands, toes) are jointless bodies welded to their parents. Ranges are the data's
+range of motion plus a margin; PD gains are proportional to the mass each joint moves.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from motok.data.skeleton import Skeleton
+
+# MuJoCo picks its GL backend at import; every motok.sim module imports this one first, so a
+# headless machine renders through EGL unless the user chose (render.py falls back to sticks).
+if not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+META_NAME = "motok_humanoid"
+META_VERSION = 1
+AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
+FORWARD, UP = AXES["x"], AXES["z"]
+
+
+class HumanoidError(ValueError):
+    pass
+
+
+def to_mj(v: np.ndarray) -> np.ndarray:
+    """Dataset coordinates (Y up, facing +Z, left +X) to MuJoCo's (Z up, facing +X, left +Y)."""
+    return np.asarray(v)[..., [2, 0, 1]]
+
+
+@dataclass
+class HumanoidConfig:
+    total_mass: float = 65.0  # kg; densities are scaled to reach it
+    timestep: float = 1.0 / 120.0  # 4 substeps per 30 Hz control step; docs/sim.md has the stability/speed measurements
+    control_hz: float = 30.0
+    range_margin_deg: float = 20.0
+    stiffness_per_kg: float = 15.0  # Nm/rad per kg moved: the ankle then holds ~1000 Nm/rad, > m g l
+    min_stiffness: float = 40.0  # Nm/rad; keeps light distal joints (elbows, neck) from being floppy
+    derivative_time: float = 0.1  # kv = derivative_time * kp (PHC's kp/kd ratio of 10)
+    armature: float = 0.02
+    friction: float = 1.0
+    solver_iterations: int = 20
+    self_collision: bool = True
+    max_frames: int = 20000  # frames sampled from the dataset for geometry and ranges
+
+
+@dataclass
+class Layout:
+    """The kinematic structure both the MJCF and the inverse kinematics are derived from.
+
+    ``kinds[j]``: ``free`` (root), ``ball`` (three hinges), ``hinge`` (one) or ``fixed`` (leaf).
+    ``axes[j]``: hinge axes in the body frame, in composition order; ``rest[j]``: body position in
+    its parent's frame (MuJoCo coordinates; every body frame is world-aligned at qpos0).
+    """
+
+    names: list[str]
+    parents: np.ndarray
+    rest: np.ndarray
+    kinds: list[str]
+    axes: list[list[str]]
+    children: list[list[int]] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.parents = np.asarray(self.parents)
+        self.rest = np.asarray(self.rest, dtype=np.float64)
+        self.children = [list(np.flatnonzero(self.parents == j)) for j in range(len(self.names))]
+
+    @property
+    def hinge_names(self) -> list[str]:
+        return [f"{n}_{a[-1]}" for n, ax in zip(self.names, self.axes) for a in ax]
+
+    def axis_vectors(self, j: int) -> np.ndarray:
+        return np.array([AXES[a] if a in AXES else -AXES[a[1]] for a in self.axes[j]]).reshape(-1, 3)
+
+
+def _dominant(v: np.ndarray) -> str:
+    return "xyz"[int(np.argmax(np.abs(v)))]
+
+
+def make_layout(skeleton: Skeleton, rest_mj: np.ndarray) -> Layout:
+    J, parents = skeleton.num_joints, skeleton.parents
+    children = [np.flatnonzero(parents == j) for j in range(J)]
+    feet = {skeleton.feet_left[0], skeleton.feet_right[0]}
+    hands = [e for e in skeleton.end_effectors if e not in feet and e != skeleton.head]
+    hinge_dir = {int(parents[f]): -FORWARD for f in feet}  # knees: the shin swings backwards
+    hinge_dir.update({int(parents[h]): FORWARD for h in hands})  # elbows: the forearm swings forwards
+    kinds, axes = [], []
+    for j in range(J):
+        kids = children[j]
+        if j == 0:
+            kinds.append("free"), axes.append([])
+        elif len(kids) == 0:
+            kinds.append("fixed"), axes.append([])
+        elif j in hinge_dir and len(kids) == 1:
+            a = np.cross(rest_mj[kids[0]], hinge_dir[j])
+            name = _dominant(a)
+            if abs(a[np.argmax(np.abs(a))]) < 0.5 * np.linalg.norm(a):
+                raise HumanoidError(f"joint {skeleton.joints[j]}: hinge axis {a} is not near a body axis")
+            kinds.append("hinge"), axes.append([name if a["xyz".index(name)] > 0 else "-" + name])
+        else:
+            bone = rest_mj[kids].sum(0) if len(kids) > 1 else rest_mj[kids[0]]
+            twist = "z" if len(kids) > 1 else _dominant(bone)
+            others = [a for a in "xyz" if a != twist]
+            kinds.append("ball"), axes.append([others[0], twist, others[1]])
+    return Layout(list(skeleton.joints), parents, rest_mj, kinds, axes)
+
+
+# ----------------------------------------------------------------------------- rest geometry
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rotations ``R (F,3,3)`` minimising ``sum_k |R src_k - dst_k|^2``; src ``(K,3)``, dst ``(F,K,3)``."""
+    h = np.einsum("ki,fkj->fij", src, dst)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", vt, u)))
+    fix = np.ones(u.shape[:-1])
+    fix[:, -1] = d
+    return np.einsum("fji,fj,fkj->fik", vt, fix, u)
+
+
+def rest_geometry(joints: np.ndarray, skeleton: Skeleton, offsets: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Rest offsets ``(J,3)`` in dataset coordinates and foot measurements, from sampled frames."""
+    parents = skeleton.parents
+    lengths = np.linalg.norm(offsets, axis=-1)
+    rest = skeleton.directions * lengths[:, None]
+    bones = joints - joints[:, np.maximum(parents, 0)]
+    for j in range(skeleton.num_joints):
+        kids = np.flatnonzero(parents == j)
+        if len(kids) < 2:
+            continue
+        template = rest[kids]
+        for _ in range(3):  # generalised Procrustes: align every frame to the mean, re-average
+            r = _kabsch(template, bones[:, kids])
+            mean = np.einsum("fkj,fji->fki", bones[:, kids], r).mean(0)
+            mean *= (lengths[kids] / np.linalg.norm(mean, axis=-1))[:, None]
+            fit = _kabsch(rest[kids], mean[None])[0]  # express it in the best-fit T-pose frame
+            template = mean @ fit
+        rest[kids] = template
+    ankles = [skeleton.feet_left[0], skeleton.feet_right[0]]
+    toes = [skeleton.feet_left[1], skeleton.feet_right[1]]
+    a_y, t_y = joints[:, ankles, 1].ravel(), joints[:, toes, 1].ravel()
+    # Stance: both the toe and the ankle near their lowest; the foot's pitch there is its flat pose.
+    stance = (t_y < np.quantile(t_y, 0.3) + 0.01) & (a_y < np.quantile(a_y, 0.3) + 0.01)
+    if stance.sum() < 10:
+        stance = np.ones_like(t_y, dtype=bool)
+    toe_len = np.tile(lengths[toes], len(joints))
+    pitch = float(np.median(np.arcsin(np.clip((a_y - t_y)[stance] / toe_len[stance], -1, 1))))
+    up = np.array([0.0, 1.0, 0.0])
+    for t in toes:
+        h = rest[t] - up * rest[t][1]
+        h /= np.linalg.norm(h)
+        rest[t] = lengths[t] * (np.cos(pitch) * h - np.sin(pitch) * up)
+    foot = {"pitch": pitch, "ankle_height": float(np.median(a_y[stance])), "toe_height": float(np.median(t_y[stance]))}
+    return rest, foot
+
+
+# ----------------------------------------------------------------------------- MJCF
+
+def _fmt(v) -> str:
+    return " ".join(f"{float(x):.6g}" for x in np.atleast_1d(v))
+
+
+def _parts(layout: Layout, skeleton: Skeleton) -> dict[str, set]:
+    """Joint sets by body part, from the skeleton's feet, hands and head (no names assumed)."""
+    par = layout.parents
+    ankles = {skeleton.feet_left[0], skeleton.feet_right[0]}
+    toes = {skeleton.feet_left[1], skeleton.feet_right[1]}
+    hands = {e for e in skeleton.end_effectors if e not in ankles and e != skeleton.head}
+    legs, spine = set(), set()
+    for f in ankles:
+        legs.update(_chain(layout, f))
+    k = skeleton.head
+    while k >= 0:
+        spine.add(k)
+        k = par[k]
+    return {"ankles": ankles, "toes": toes, "hands": hands, "legs": legs, "spine": spine}
+
+
+# Capsule radii (m, for a 1.70 m person) by bone: the part of the body a bone parent -> child crosses.
+RADII = {"pelvis": 0.09, "lower_torso": 0.10, "upper_torso": 0.11, "neck": 0.05, "chest_to_shoulder": 0.065,
+         "clavicle": 0.05, "upper_arm": 0.045, "forearm": 0.04, "thigh": 0.065, "shin": 0.05}
+
+
+def _bone_part(j: int, c: int, par: np.ndarray, parts: dict, head: int) -> str | None:
+    spine, legs = parts["spine"], parts["legs"]
+    if c in parts["toes"] or (j == 0 and c in legs):
+        return None  # the foot box and the pelvis capsule cover these
+    if j in spine and c in spine:
+        return "neck" if c == head else ("lower_torso" if j == 0 else "upper_torso")
+    if j in spine:
+        return "chest_to_shoulder"
+    if j in legs:
+        return "thigh" if par[j] == 0 else "shin"
+    if par[j] in spine:
+        return "clavicle"
+    return "forearm" if c in parts["hands"] else "upper_arm"
+
+
+def _geoms(layout: Layout, skeleton: Skeleton, foot: dict, s: float) -> dict[int, list[dict]]:
+    """Capsules along bones with radii by body part, a head sphere, hand spheres, box feet and toes."""
+    par, rest, kids = layout.parents, layout.rest, layout.children
+    parts = _parts(layout, skeleton)
+    out: dict[int, list[dict]] = {j: [] for j in range(len(layout.names))}
+
+    def capsule(j, a, b, r):
+        if np.linalg.norm(b - a) > 1e-4:
+            out[j].append(dict(type="capsule", fromto=_fmt(np.concatenate([a, b])), size=_fmt(r * s)))
+
+    hips = [c for c in kids[0] if c in parts["legs"]]
+    if len(hips) == 2:  # pelvis: one capsule across the hip joints, a little inside them
+        capsule(0, rest[hips[0]] * 0.8, rest[hips[1]] * 0.8, RADII["pelvis"])
+    for j in range(len(layout.names)):
+        for c in kids[j]:
+            part = _bone_part(j, c, par, parts, skeleton.head)
+            if part is not None:
+                # Thighs start below the hip joint so the two legs do not touch at rest.
+                start = rest[c] * 0.15 if part == "thigh" else np.zeros(3)
+                capsule(j, start, rest[c], RADII[part])
+    out[skeleton.head].append(dict(type="sphere", pos=_fmt(UP * 0.085 * s), size=_fmt(0.095 * s)))
+    for h in parts["hands"]:
+        d = rest[h] / np.linalg.norm(rest[h])
+        out[h].append(dict(type="sphere", pos=_fmt(d * 0.05 * s), size=_fmt(0.042 * s)))
+    for a, t in zip((skeleton.feet_left[0], skeleton.feet_right[0]), (skeleton.feet_left[1], skeleton.feet_right[1])):
+        sole = -foot["ankle_height"]  # the rest pose stands the foot flat: sole at the stance ankle height
+        heel, tip = -0.05 * s, rest[t][0]
+        height = 0.6 * foot["ankle_height"] + 0.02
+        out[a].append(dict(type="box", pos=_fmt([(heel + tip) / 2, rest[t][1] / 2, sole + height / 2]),
+                           size=_fmt([(tip - heel) / 2, 0.045 * s, height / 2])))
+        toe_sole = sole - rest[t][2]
+        out[t].append(dict(type="box", pos=_fmt([0.025 * s, 0, toe_sole + 0.0125 * s]),
+                           size=_fmt([0.025 * s, 0.04 * s, 0.0125 * s])))
+    return out
+
+
+def _volume(g: dict) -> float:
+    size = np.array(g["size"].split(), dtype=float)
+    if g["type"] == "sphere":
+        return 4 / 3 * np.pi * size[0] ** 3
+    if g["type"] == "box":
+        return 8 * np.prod(size)
+    ft = np.array(g["fromto"].split(), dtype=float)
+    return np.pi * size[0] ** 2 * np.linalg.norm(ft[3:] - ft[:3]) + 4 / 3 * np.pi * size[0] ** 3
+
+
+def _mjcf(layout: Layout, geoms: dict, cfg: HumanoidConfig, density: float, ranges: dict, gains: dict,
+          excludes: list, meta: dict) -> str:
+    root = ET.Element("mujoco", model="motok_humanoid")
+    ET.SubElement(root, "compiler", angle="radian", autolimits="true")
+    ET.SubElement(root, "option", timestep=f"{cfg.timestep:.8g}", integrator="implicitfast",
+                  iterations=str(cfg.solver_iterations), ls_iterations=str(max(4, cfg.solver_iterations // 2)))
+    vis = ET.SubElement(root, "visual")
+    ET.SubElement(vis, "global", offwidth="1280", offheight="720")
+    ET.SubElement(vis, "quality", shadowsize="2048")
+    asset = ET.SubElement(root, "asset")
+    ET.SubElement(asset, "texture", name="grid", type="2d", builtin="checker", rgb1=".82 .84 .86", rgb2=".7 .72 .76",
+                  width="512", height="512")
+    ET.SubElement(asset, "material", name="floor", texture="grid", texrepeat="8 8", reflectance="0.05")
+    ET.SubElement(asset, "material", name="body", rgba=".85 .6 .42 1")
+    ET.SubElement(asset, "texture", name="sky", type="skybox", builtin="gradient", rgb1=".96 .96 .95", rgb2=".8 .84 .9",
+                  width="256", height="256")
+    default = ET.SubElement(root, "default")
+    ET.SubElement(default, "joint", armature=f"{cfg.armature:g}", damping="0", limited="true")
+    ET.SubElement(default, "geom", density=f"{density:.6g}", friction=f"{cfg.friction:g} 0.005 0.0001",
+                  material="body", condim="3", contype="1", conaffinity="1" if cfg.self_collision else "0")
+    ET.SubElement(default, "position", ctrllimited="true")
+    world = ET.SubElement(root, "worldbody")
+    ET.SubElement(world, "light", name="sun", pos="0 0 4", dir="0 0 -1", directional="true", castshadow="true",
+                  diffuse=".8 .8 .8")
+    ET.SubElement(world, "geom", name="floor", type="plane", size="0 0 0.05", material="floor", conaffinity="1",
+                  contype="1", condim="3", friction=f"{cfg.friction:g} 0.005 0.0001")
+    elems = {}
+    for j, name in enumerate(layout.names):
+        p = layout.parents[j]
+        parent = world if p < 0 else elems[p]
+        pos = layout.rest[j] if p >= 0 else np.array([0, 0, meta["root_height"]])
+        b = ET.SubElement(parent, "body", name=name, pos=_fmt(pos))
+        elems[j] = b
+        if layout.kinds[j] == "free":
+            ET.SubElement(b, "freejoint", name="root")
+            ET.SubElement(b, "camera", name="track", mode="trackcom", pos="-0.6 -3.2 0.5", xyaxes="1 -0.18 0 0.05 0.3 1")
+        for k, a in enumerate(layout.axes[j]):
+            hn = f"{name}_{a[-1]}"
+            ET.SubElement(b, "joint", name=hn, type="hinge", axis=_fmt(layout.axis_vectors(j)[k]), range=_fmt(ranges[hn]))
+        for g in geoms[j]:
+            ET.SubElement(b, "geom", **g)
+    contact = ET.SubElement(root, "contact")
+    for a, b in excludes:
+        ET.SubElement(contact, "exclude", body1=a, body2=b)
+    act = ET.SubElement(root, "actuator")
+    for hn in layout.hinge_names:
+        kp = gains[hn]
+        ET.SubElement(act, "position", name=hn, joint=hn, kp=f"{kp:.6g}", kv=f"{kp * cfg.derivative_time:.6g}",
+                      ctrlrange=_fmt(ranges[hn]))
+    custom = ET.SubElement(root, "custom")
+    ET.SubElement(custom, "text", name=META_NAME, data=json.dumps(meta, separators=(",", ":")))
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode")
+
+
+def _moved_mass(model, layout: Layout, skeleton: Skeleton, body_ids: np.ndarray) -> dict[str, float]:
+    """Mass each hinge moves: its subtree, or for leg joints the larger side (a stance leg carries the body)."""
+    total = float(model.body_subtreemass[body_ids[0]])
+    legs = set()
+    for f in (skeleton.feet_left[0], skeleton.feet_right[0]):
+        k = f
+        while k > 0:
+            legs.add(k)
+            k = layout.parents[k]
+    out = {}
+    for j, name in enumerate(layout.names):
+        sub = float(model.body_subtreemass[body_ids[j]])
+        m = max(sub, total - sub) if j in legs else sub
+        for a in layout.axes[j]:
+            out[f"{name}_{a[-1]}"] = m
+    return out
+
+
+def build_humanoid(data_path, out, cfg: HumanoidConfig | None = None) -> dict:
+    """Write the MJCF for a ``motion-dataset`` artifact; returns a summary (mass, DoF, ranges...)."""
+    import mujoco
+
+    from motok.artifacts import command_line, hash_inputs
+    from motok.data.dataset import MotionFile
+    from motok.sim.reference import solve_pose
+
+    cfg = cfg or HumanoidConfig()
+    with MotionFile(data_path, "motion-dataset") as mf:
+        skeleton, offsets = mf.skeleton, np.asarray(mf.offsets, dtype=np.float64)
+        step = max(1, int(np.ceil(mf.frame_offsets[-1] / cfg.max_frames)))
+        clips = [np.asarray(mf.frames("joints", i), dtype=np.float64)[::step] for i in range(len(mf))]
+    frames = np.concatenate(clips)
+    rest_d, foot = rest_geometry(frames, skeleton, offsets)
+    layout = make_layout(skeleton, to_mj(rest_d))
+    angles = np.concatenate([solve_pose(to_mj(c), layout)[2] for c in clips if len(c) > 0])
+    margin = np.deg2rad(cfg.range_margin_deg)
+    # Ranges always contain 0 so the rest pose (qpos0, what a viewer opens) is a legal configuration.
+    lo = np.clip(np.minimum(angles.min(0) - margin, 0.0), -np.pi + 1e-3, 0.0)
+    hi = np.clip(np.maximum(angles.max(0) + margin, 0.0), 0.0, np.pi - 1e-3)
+    ranges = {n: (lo[i], hi[i]) for i, n in enumerate(layout.hinge_names)}
+    height = float(np.quantile(frames[:, skeleton.head, 1], 0.5)) + 0.18
+    scale = height / 1.70
+    geoms = _geoms(layout, skeleton, foot, scale)
+    volume = sum(_volume(g) for gs in geoms.values() for g in gs)
+    density = cfg.total_mass / volume
+    # qpos0 stands the rest pose on the floor: root height = leg drop to the ankle + stance ankle height.
+    drop = -sum(layout.rest[k][2] for k in _chain(layout, skeleton.feet_left[0]))
+    meta = dict(version=META_VERSION, skeleton=skeleton.to_dict(), control_hz=cfg.control_hz, config=asdict(cfg),
+                foot=foot, root_height=float(drop + foot["ankle_height"] + 1e-3),
+                source=str(data_path), inputs=hash_inputs([data_path]), command=command_line())
+    xml = _mjcf(layout, geoms, cfg, density, ranges, {n: 1.0 for n in layout.hinge_names}, [], meta)
+    model = mujoco.MjModel.from_xml_string(xml)
+    body_ids = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in layout.names])
+    gains = {n: max(cfg.stiffness_per_kg * m, cfg.min_stiffness)
+             for n, m in _moved_mass(model, layout, skeleton, body_ids).items()}
+    excludes = _rest_contacts(model, layout) if cfg.self_collision else []
+    xml = _mjcf(layout, geoms, cfg, density, ranges, gains, excludes, meta)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(xml)
+    hum = load_humanoid(out)
+    m = hum.model
+    return {"output": str(out), "bodies": m.nbody - 1, "hinges": m.nu, "nq": m.nq, "nv": m.nv,
+            "mass_kg": round(float(m.body_subtreemass[1]), 2), "height_m": round(height, 3),
+            "timestep_s": m.opt.timestep, "substeps": hum.substeps, "control_hz": cfg.control_hz,
+            "excluded_pairs": len(excludes), "frames_used": len(frames)}
+
+
+def _chain(layout: Layout, j: int) -> list[int]:
+    out = []
+    while j > 0:
+        out.append(j)
+        j = layout.parents[j]
+    return out
+
+
+def _rest_contacts(model, layout: Layout) -> list[tuple[str, str]]:
+    """Body pairs that touch at qpos0: structural overlaps (pelvis vs spine children, ...), excluded."""
+    import mujoco
+
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    pairs = set()
+    for c in d.contact[: d.ncon]:
+        b1, b2 = model.geom_bodyid[c.geom[0]], model.geom_bodyid[c.geom[1]]
+        if b1 and b2:
+            pairs.add(tuple(sorted((mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b1),
+                                    mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b2)))))
+    return sorted(pairs)
+
+
+# ----------------------------------------------------------------------------- loading
+
+@dataclass
+class Humanoid:
+    """A loaded motok humanoid: the MjModel, its skeleton and the layout the IK works in."""
+
+    model: object
+    skeleton: Skeleton
+    layout: Layout
+    body_ids: np.ndarray  # (J,) MuJoCo body id of each skeleton joint
+    qpos_adr: list[np.ndarray]  # per joint: qpos addresses of its hinges
+    meta: dict
+    path: Path | None = None
+
+    @property
+    def control_hz(self) -> float:
+        return float(self.meta["control_hz"])
+
+    @property
+    def substeps(self) -> int:
+        return max(1, int(round(1.0 / (self.control_hz * self.model.opt.timestep))))
+
+    @property
+    def hinge_qpos_adr(self) -> np.ndarray:
+        return np.concatenate([a for a in self.qpos_adr if len(a)]).astype(np.int64)
+
+
+def load_humanoid(path) -> Humanoid:
+    """Load and check a humanoid MJCF written by :func:`build_humanoid`, with one-line errors."""
+    import mujoco
+
+    path = Path(path)
+    if not path.exists():
+        raise HumanoidError(f"{path}: no such file (build one with `motok sim build-humanoid`)")
+    try:
+        model = mujoco.MjModel.from_xml_path(str(path))
+    except ValueError as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else "unknown error"
+        raise HumanoidError(f"{path}: MuJoCo cannot load this MJCF: {first}") from None
+    return humanoid_from_model(model, path)
+
+
+def humanoid_from_model(model, path=None) -> Humanoid:
+    import mujoco
+
+    where = path or "<model>"
+    tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, META_NAME)
+    if tid < 0:
+        raise HumanoidError(f"{where}: not a motok humanoid (no <custom><text name='{META_NAME}'>); "
+                            "build one with `motok sim build-humanoid`")
+    adr, size = model.text_adr[tid], model.text_size[tid]
+    raw = bytes(model.text_data[adr:adr + size]).split(b"\0")[0].decode()
+    try:
+        meta = json.loads(raw)
+    except json.JSONDecodeError as e:
+        raise HumanoidError(f"{where}: corrupt motok metadata ({e})") from None
+    if meta.get("version") != META_VERSION:
+        raise HumanoidError(f"{where}: humanoid format version {meta.get('version')} is not {META_VERSION}; rebuild it")
+    skeleton = Skeleton.from_dict(meta["skeleton"], source=f"{where}:{META_NAME}")
+    ids, rest, kinds, axes, qadr = [], [], [], [], []
+    for j, name in enumerate(skeleton.joints):
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if b < 0:
+            raise HumanoidError(f"{where}: the skeleton's joint {name!r} has no body of that name")
+        p = skeleton.parents[j]
+        if p >= 0 and model.body_parentid[b] != ids[p]:
+            raise HumanoidError(f"{where}: body {name!r} must be a child of {skeleton.joints[p]!r}")
+        ids.append(b)
+        rest.append(model.body_pos[b].copy())
+        jn = range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
+        types = [model.jnt_type[k] for k in jn]
+        if p < 0:
+            if types != [mujoco.mjtJoint.mjJNT_FREE]:
+                raise HumanoidError(f"{where}: root body {name!r} needs exactly one free joint")
+            kinds.append("free"), axes.append([]), qadr.append(np.zeros(0, dtype=np.int64))
+            continue
+        if any(t != mujoco.mjtJoint.mjJNT_HINGE for t in types) or len(types) not in (0, 1, 3):
+            raise HumanoidError(f"{where}: body {name!r} must have 0, 1 or 3 hinge joints")
+        names = []
+        for k in jn:
+            a = model.jnt_axis[k]
+            i = int(np.argmax(np.abs(a)))
+            if abs(abs(a[i]) - 1) > 1e-6:
+                raise HumanoidError(f"{where}: hinge {mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, k)} "
+                                    "must have a body-axis-aligned axis")
+            names.append(("" if a[i] > 0 else "-") + "xyz"[i])
+        kinds.append({0: "fixed", 1: "hinge", 3: "ball"}[len(types)])
+        axes.append(names)
+        qadr.append(np.array([model.jnt_qposadr[k] for k in jn], dtype=np.int64))
+        if not np.allclose(model.body_quat[b], [1, 0, 0, 0]):
+            raise HumanoidError(f"{where}: body {name!r} must have an identity orientation")
+    if model.nu != sum(len(a) for a in axes):
+        raise HumanoidError(f"{where}: expected one actuator per hinge ({sum(len(a) for a in axes)}), found {model.nu}")
+    layout = Layout(list(skeleton.joints), skeleton.parents, np.array(rest), kinds, axes)
+    return Humanoid(model, skeleton, layout, np.array(ids), qadr, meta, Path(path) if path else None)

@@ -1,0 +1,107 @@
+"""Offscreen video of humanoid trajectories: MuJoCo's renderer (EGL or OSMesa on headless
+machines), else the stick figure of ``motok.render.stick`` drawn from the body positions.
+
+MuJoCo chooses its GL backend when it is first imported, so ``motok.sim.humanoid`` (which every
+sim module imports before MuJoCo) sets ``MUJOCO_GL=egl`` when there is no display and the user
+did not choose. A ``ghost`` trajectory (the reference) can be drawn as a translucent second body.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from motok.sim.humanoid import Humanoid
+
+SUFFIXES = (".mp4", ".gif")
+
+
+def to_data(v: np.ndarray) -> np.ndarray:
+    """MuJoCo coordinates back to the dataset's (Y up, facing +Z): inverse of ``to_mj``."""
+    return np.asarray(v)[..., [1, 2, 0]]
+
+
+def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | None, title: str | None):
+    import mujoco
+
+    m = hum.model
+    d = mujoco.MjData(m)
+    dg = mujoco.MjData(m) if ghost is not None else None
+    renderer = mujoco.Renderer(m, height=size[1], width=size[0])
+    cam = mujoco.MjvCamera()
+    cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+    cam.distance, cam.elevation, cam.azimuth = 3.4, -12.0, 120.0
+    opt = mujoco.MjvOption()
+    look = None
+    try:
+        for t in range(len(qpos)):
+            d.qpos[:] = qpos[t]
+            mujoco.mj_forward(m, d)
+            root = d.xpos[hum.body_ids[0]].copy()
+            look = root if look is None else 0.9 * look + 0.1 * root  # a camera that follows smoothly
+            cam.lookat[:] = (look[0], look[1], 0.9)
+            renderer.update_scene(d, camera=cam, scene_option=opt)
+            if dg is not None:
+                dg.qpos[:] = ghost[min(t, len(ghost) - 1)]
+                mujoco.mj_forward(m, dg)
+                scn = renderer.scene
+                start = scn.ngeom
+                mujoco.mjv_addGeoms(m, dg, opt, mujoco.MjvPerturb(), mujoco.mjtCatBit.mjCAT_DYNAMIC, scn)
+                for i in range(start, scn.ngeom):
+                    scn.geoms[i].rgba[:] = (0.3, 0.55, 0.95, 0.35)
+            yield renderer.render()
+    finally:
+        renderer.close()
+
+
+def _write(frames, out: Path, fps: float) -> None:
+    import imageio.v2 as imageio
+
+    tmp = out.with_name(f".{out.stem}.{os.getpid()}.part{out.suffix}")
+    try:
+        if out.suffix == ".mp4":
+            w = imageio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                                   pixelformat="yuv420p", macro_block_size=1, quality=7, ffmpeg_log_level="error")
+        else:
+            w = imageio.get_writer(str(tmp), format="GIF", mode="I", duration=1000.0 / fps, loop=0)
+        try:
+            for f in frames:
+                w.append_data(f)
+        finally:
+            w.close()
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title: str | None = None,
+                      ghost: np.ndarray | None = None, size=(640, 480), backend: str = "auto") -> tuple[Path, str]:
+    """Render ``qpos (T, nq)`` to ``out`` (.mp4 or .gif); returns the path and the backend used
+    (``mujoco`` or ``stick``). ``backend="stick"`` forces the fallback."""
+    out = Path(out)
+    if out.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    size = tuple(int(s) + int(s) % 2 for s in size)
+    if backend in ("auto", "mujoco"):
+        try:
+            frames = _frames_mujoco(hum, qpos, size, ghost, title)
+            first = next(frames)
+        except Exception as e:  # no GL at all (no EGL/OSMesa, no display): draw the stick figure instead
+            if backend == "mujoco":
+                raise RuntimeError(f"MuJoCo offscreen rendering failed ({e}); set MUJOCO_GL=egl or osmesa") from e
+        else:
+            def chain():
+                yield first
+                yield from frames
+            _write(chain(), out, fps)
+            return out, "mujoco"
+    from motok.render.stick import render_motion
+    from motok.sim.reference import body_states
+
+    joints = to_data(body_states(hum, qpos, np.zeros((len(qpos), hum.model.nv)))["body_pos"])
+    render_motion(joints, hum.skeleton.parents, out, fps=fps, title=title, size=size)
+    return out, "stick"

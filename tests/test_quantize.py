@@ -1,0 +1,415 @@
+"""Quantizers: assignment, straight-through gradients, EMA and reset updates, residual VQ,
+FSQ, statistics, and codebooks staying identical across two distributed ranks."""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import socket
+
+import numpy as np
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+from motok.config import from_dict
+from motok.tokenizer.quantize import QuantizerConfig, build_quantizer
+
+CODEBOOK_KINDS = ["vq", "ema", "reset", "ema_reset", "rvq"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    # These tensors are tiny; on a busy 2-core machine intra-op threads only add spin-waiting.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def make(kind, K=16, D=8, N=None, seed=0, **kw):
+    torch.manual_seed(seed)
+    N = N if N is not None else (3 if kind == "rvq" else 1)
+    return build_quantizer(QuantizerConfig(kind=kind, codebook_size=K, dim=D, num_codebooks=N, **kw))
+
+
+def layers(q):
+    return list(q.layers) if hasattr(q, "layers") else [q]
+
+
+def set_codebooks(q, books):
+    """Overwrite codebook i with books[i], keeping EMA state consistent with it."""
+    with torch.no_grad():
+        for layer, book in zip(layers(q), books):
+            layer.embed.copy_(book)
+            if layer.uses_ema:
+                layer.ema_sum.copy_(book)
+                layer.ema_count.fill_(1.0)
+
+
+def random_codebooks(q, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    # Later residual codebooks see smaller residuals; shrink them so they are actually used.
+    set_codebooks(q, [torch.randn(q.codebook_size, q.dim, generator=g) * 0.5**i for i in range(q.num_codebooks)])
+
+
+def rows(z):
+    return z.transpose(1, 2).reshape(-1, z.shape[1])
+
+
+def brute_force(x, books):
+    """Residual nearest-code search with an explicit loop over codes, in float64."""
+    r, out = x.double(), []
+    for book in books:
+        book = book.double()
+        d = torch.empty(len(r), len(book), dtype=torch.float64)
+        for k in range(len(book)):
+            d[:, k] = ((r - book[k]) ** 2).sum(1)
+        idx = d.argmin(1)
+        out.append(idx)
+        r = r - book[idx]
+    return torch.stack(out, 1)
+
+
+# --- assignment ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", CODEBOOK_KINDS)
+def test_nearest_code_matches_brute_force(kind):
+    q = make(kind, quantizer_dropout=0.0)
+    random_codebooks(q)
+    z = torch.randn(3, q.dim, 20, generator=torch.Generator().manual_seed(2))
+    books = list(q.codebooks().clone())
+    expect = brute_force(rows(z), books)
+    q.eval()
+    assert torch.equal(q.encode(z).reshape(-1, q.num_codebooks), expect)
+    assert torch.equal(q(z).indices.reshape(-1, q.num_codebooks), expect)
+    # In training, codes are assigned with the codebook as it was before this step's update.
+    assert torch.equal(q.train()(z).indices.reshape(-1, q.num_codebooks), expect)
+
+
+def test_distances_stay_float32_under_autocast():
+    q = make("ema", K=256, D=64).eval()
+    random_codebooks(q)
+    z = torch.randn(4, 64, 50, generator=torch.Generator().manual_seed(3))
+    expect = brute_force(rows(z), list(q.codebooks()))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = q(z)
+        idx = q.encode(z)
+    assert torch.equal(idx.reshape(-1, 1), expect) and torch.equal(out.indices, idx)
+    assert out.losses["commit"].dtype == torch.float32
+
+
+# --- gradients ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", CODEBOOK_KINDS)
+def test_straight_through_passes_gradient_unchanged(kind):
+    q = make(kind).train()
+    random_codebooks(q)
+    books = q.codebooks().clone()
+    z = torch.randn(2, q.dim, 12, requires_grad=True)
+    out = q(z)
+    # Forward value: exactly the sum of the (pre-update) codes of the active codebooks.
+    idx = out.indices
+    expect = torch.zeros(2, 12, q.dim)
+    for i in range(out.stats["num_active_codebooks"]):
+        expect = expect + books[i][idx[..., i]]
+    assert torch.equal(out.z_q, expect.transpose(1, 2))
+    w = torch.randn_like(out.z_q)
+    (out.z_q * w).sum().backward()
+    assert torch.equal(z.grad, w)
+
+
+@pytest.mark.parametrize("kind", ["vq", "reset"])
+def test_learned_codebook_gets_gradient_only_from_codebook_loss(kind):
+    q = make(kind, K=8, D=4).train()
+    random_codebooks(q)
+    book = q.embed.detach().clone()
+    z = torch.randn(2, 4, 10, requires_grad=True)
+    out = q(z)
+    (out.z_q.sum() + out.losses["commit"]).backward()
+    assert q.embed.grad is None  # reconstruction and commitment leave the codebook alone
+    x, idx = rows(z.detach()), out.indices.reshape(-1)
+    # d/dz of mean ||z - sg(e)||^2 = 2 (z - e) / numel, on top of the reconstruction gradient.
+    commit_grad = 2 * (x - book[idx]) / x.numel()
+    assert torch.allclose(rows(z.grad), 1 + commit_grad, atol=1e-7)
+    out.losses["codebook"].backward()
+    expect = torch.zeros_like(book).index_add_(0, idx, 2 * (book[idx] - x) / x.numel())
+    assert torch.allclose(q.embed.grad, expect, atol=1e-7)
+    assert q.embed.grad[idx.unique()].abs().sum(1).gt(0).all()
+
+
+def test_ema_kinds_have_no_parameters():
+    for kind in ("ema", "ema_reset", "rvq"):
+        assert list(make(kind).parameters()) == []
+
+
+# --- EMA and reset updates ----------------------------------------------------------------
+
+def test_ema_update_on_a_hand_example():
+    """K=3, D=2, decay 3/4, eps 1/4. Codes e0=(0,0), e1=(1,0), e2=(0,1); counts N=(1,1,1), sums m=e.
+    Inputs (0.2,0), (0,-0.2) -> e0; (1.2,0.2), (0.8,-0.4) -> e1; e2 unused: n = (2,2,0),
+    sums s0=(0.2,-0.2), s1=(2.0,-0.2), s2=(0,0).
+    N <- 3/4 N + 1/4 n = (1.25, 1.25, 0.75);  m <- 3/4 m + 1/4 s: m0=(0.05,-0.05), m1=(1.25,-0.05), m2=(0,0.75).
+    Laplace: sum N = 3.25, N~ = (N + 1/4) / (3.25 + 3/4) * 3.25 = (39/32, 39/32, 13/16).
+    e = m / N~: e0 = (8/195, -8/195), e1 = (40/39, -8/195), e2 = (0, 12/13)."""
+    q = make("ema", K=3, D=2, decay=0.75, eps=0.25).train()
+    set_codebooks(q, [torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])])
+    z = torch.tensor([[0.2, 0.0], [0.0, -0.2], [1.2, 0.2], [0.8, -0.4]]).t()[None]
+    out = q(z)
+    assert out.indices.reshape(-1).tolist() == [0, 0, 1, 1]
+    assert torch.allclose(q.ema_count, torch.tensor([1.25, 1.25, 0.75]))
+    assert torch.allclose(q.ema_sum, torch.tensor([[0.05, -0.05], [1.25, -0.05], [0.0, 0.75]]))
+    expect = torch.tensor([[8 / 195, -8 / 195], [40 / 39, -8 / 195], [0.0, 12 / 13]])
+    assert torch.allclose(q.embed, expect, atol=1e-6)
+
+
+def clustered(book, used, n=64, seed=4):
+    """(1, D, n) inputs, each within 0.01 of one of the codes in `used`."""
+    g = torch.Generator().manual_seed(seed)
+    pick = torch.tensor(used)[torch.arange(n) % len(used)]
+    return (book[pick] + 0.01 * torch.randn(n, book.shape[1], generator=g)).t()[None]
+
+
+def separated_book(K=8, D=4, seed=5):
+    return 5 * torch.randn(K, D, generator=torch.Generator().manual_seed(seed))
+
+
+def test_reset_replaces_exactly_the_dead_codes():
+    q = make("reset", K=8, D=4).train()
+    book = separated_book()
+    set_codebooks(q, [book])
+    # Counts (4, 3, 1, 0, ...): code 2 sits exactly on the threshold (1), which is not dead.
+    # Only 8 inputs for 5 dead codes, so drawing with replacement would likely repeat one.
+    z = clustered(book, [0, 0, 0, 0, 1, 1, 1, 2], n=8)
+    out = q(z)
+    after = q.embed.detach()
+    assert out.stats["dead"] == [5]
+    assert torch.equal(after[:3], book[:3])  # used this step: untouched
+    x = rows(z)
+    for k in range(3, 8):
+        assert not torch.equal(after[k], book[k])
+        assert (x == after[k]).all(1).any(), f"code {k} is not one of the inputs"
+    assert len(after[3:].unique(dim=0)) == 5  # drawn without replacement
+    out.losses["codebook"].backward()  # the in-place reset must not break autograd
+
+
+def test_reset_window_accumulates_usage_before_resetting():
+    q = make("reset", K=8, D=4, reset_window=3).train()
+    book = separated_book()
+    set_codebooks(q, [book])
+    dead = [q(clustered(book, used)).stats["dead"][0] for used in ([0, 1], [2], [0])]
+    assert dead == [0, 0, 5]  # codes 0-2 were each used somewhere in the window
+    assert torch.equal(q.embed.detach()[:3], book[:3])
+    assert q(clustered(book, [0])).stats["dead"] == [0]  # the window restarted
+
+
+def test_ema_reset_updates_live_codes_like_ema_and_resets_dead_ones():
+    ema, ema_reset = make("ema", K=8, D=4).train(), make("ema_reset", K=8, D=4).train()
+    book = separated_book()
+    set_codebooks(ema, [book])
+    ema_reset.load_state_dict(ema.state_dict())
+    z = clustered(book, [0, 1, 2])
+    ema(z)
+    out = ema_reset(z)
+    assert out.stats["dead"] == [5]
+    assert torch.equal(ema_reset.embed[:3], ema.embed[:3])
+    x = rows(z)
+    for k in range(3, 8):
+        assert (x == ema_reset.embed[k]).all(1).any()
+        assert not torch.allclose(ema_reset.embed[k], ema.embed[k])
+    assert torch.equal(ema_reset.ema_count[3:], torch.ones(5))
+    assert torch.equal(ema_reset.ema_sum[3:], ema_reset.embed[3:])
+
+
+def test_kmeans_init_runs_lloyd_once_on_the_first_training_batch():
+    q = make("vq", K=4, D=2, kmeans_init=True).train()
+    init = q.embed.detach().clone()
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    g = torch.Generator().manual_seed(6)
+    x = centres.repeat_interleave(50, 0) + torch.randn(200, 2, generator=g)
+    q(x.t()[None])
+    book = q.embed.detach().clone()
+    assert not torch.equal(book, init) and int(q.initted) == 1
+    # A fixed point of Lloyd's algorithm: every code is the mean of the inputs nearest to it.
+    idx = torch.cdist(x, book).argmin(1)
+    for k in idx.unique():
+        assert torch.allclose(book[k], x[idx == k].mean(0), atol=1e-4)
+    q(x.t()[None])
+    assert torch.equal(q.embed.detach(), book)  # not re-initialised
+
+
+# --- residual VQ --------------------------------------------------------------------------
+
+def test_rvq_z_q_is_the_sum_of_codebook_vectors_and_any_prefix_decodes():
+    q = make("rvq", N=4).eval()
+    random_codebooks(q)
+    z = torch.randn(2, q.dim, 15, generator=torch.Generator().manual_seed(7))
+    out = q(z)
+    idx, books = out.indices, q.codebooks()
+    manual = torch.zeros(2, 15, q.dim)
+    for i in range(4):
+        manual = manual + books[i][idx[..., i]]
+    assert torch.equal(out.z_q, manual.transpose(1, 2))
+    assert torch.equal(q.decode(q.encode(z)), out.z_q)
+    for m in range(1, 5):
+        part = q.encode(z, num_codebooks=m)
+        assert torch.equal(part[..., :m], idx[..., :m]) and (part[..., m:] == -1).all()
+        assert torch.equal(q(z, num_codebooks=m).z_q, q.decode(part))
+        assert torch.equal(q.decode(idx, num_codebooks=m), q.decode(idx[..., :m]))
+
+
+def test_rvq_residual_error_does_not_grow_with_more_codebooks(golden_features, golden_dir):
+    mean, std = np.load(golden_dir / "Mean.npy"), np.load(golden_dir / "Std.npy")
+    feats = torch.from_numpy(((golden_features - mean) / std).astype(np.float32))  # (170, 263)
+    q = make("rvq", K=32, D=feats.shape[1], N=4, quantizer_dropout=0.0, kmeans_init=True).train()
+    g = torch.Generator().manual_seed(8)
+    for _ in range(20):
+        starts = torch.randint(0, len(feats) - 32, (4,), generator=g)
+        q(torch.stack([feats[s:s + 32] for s in starts.tolist()]).transpose(1, 2))
+    q.eval()
+    z = feats.t()[None]
+    err = [float(z.pow(2).mean())]
+    err += [float((z - q.decode(q.encode(z, m))).pow(2).mean()) for m in range(1, 5)]
+    assert all(b <= a + 1e-6 for a, b in zip(err, err[1:])), err
+    assert err[4] < 0.5 * err[1], err
+
+
+def test_rvq_quantizer_dropout_uses_a_prefix_and_leaves_the_rest_untouched():
+    q = make("rvq", N=3, quantizer_dropout=1.0).train()
+    random_codebooks(q)
+    g = torch.Generator().manual_seed(9)
+    seen = set()
+    for _ in range(30):
+        before = q.codebooks().clone()
+        steps = [int(layer.train_steps) for layer in q.layers]
+        out = q(torch.randn(2, q.dim, 10, generator=g))
+        m = out.stats["num_active_codebooks"]
+        seen.add(m)
+        assert (out.indices[..., :m] >= 0).all() and (out.indices[..., m:] == -1).all()
+        assert torch.equal(q.codebooks()[m:], before[m:])
+        assert [int(layer.train_steps) for layer in q.layers[m:]] == steps[m:]
+        assert not torch.equal(q.codebooks()[:m], before[:m])  # EMA moved the active ones
+        assert out.stats["usage"][m:] == [0.0] * (3 - m) and all(u > 0 for u in out.stats["usage"][:m])
+    assert seen == {1, 2, 3}
+    no_drop = make("rvq", N=3, quantizer_dropout=0.0).train()
+    assert {no_drop(torch.randn(2, 8, 10)).stats["num_active_codebooks"] for _ in range(10)} == {3}
+
+
+# --- FSQ ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("levels", [[8, 5, 5, 5], [2, 3, 4]])
+def test_fsq_indices_round_trip(levels):
+    q = build_quantizer(QuantizerConfig(kind="fsq", dim=len(levels), fsq_levels=levels)).eval()
+    K = math.prod(levels)
+    assert q.codebook_size == K
+    grid = q.codebooks()[0]  # (K, d): every point of the implicit codebook
+    assert len(grid.unique(dim=0)) == K and grid.abs().max() <= 1.0
+    # encode bounds its input with tanh first, so feed the pre-images of the grid points
+    # (pulled in slightly: atanh(+-1) is infinite).
+    pre = torch.atanh(grid * (1 - 1e-6))
+    assert torch.equal(q.encode(pre.t()[None]).reshape(-1), torch.arange(K))
+    assert torch.equal(q.decode(torch.arange(K).reshape(1, K, 1)), grid.t()[None])
+
+
+def test_fsq_forward_matches_encode_decode_and_trains_the_projection():
+    q = build_quantizer(QuantizerConfig(kind="fsq", dim=16)).train()
+    z = torch.randn(2, 16, 9, requires_grad=True)
+    out = q(z)
+    assert out.indices.shape == (2, 9, 1) and 0 <= int(out.indices.min()) and int(out.indices.max()) < 1000
+    out.z_q.pow(2).sum().backward()
+    assert z.grad.abs().sum() > 0 and q.project_in.weight.grad.abs().sum() > 0
+    assert float(out.losses["commit"]) == 0.0
+    q.eval()
+    assert torch.equal(q(z).z_q, q.decode(q.encode(z)))
+
+
+# --- statistics, config, checkpoints ------------------------------------------------------
+
+def test_usage_and_perplexity_on_a_hand_example():
+    """Histogram (2, 1, 1, 0): p = (1/2, 1/4, 1/4, 0), H = 1/2 ln 2 + 2 * 1/4 ln 4 = 3/2 ln 2,
+    perplexity = 2^1.5; usage = 3/4."""
+    q = make("vq", K=4, D=2).eval()
+    set_codebooks(q, [torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])])
+    z = torch.tensor([[0.1, 0.0], [0.0, 0.1], [9.9, 0.0], [0.0, 9.9]]).t()[None]
+    stats = q(z).stats
+    assert stats["usage"] == [0.75] and stats["dead"] == [0] and stats["num_active_codebooks"] == 1
+    assert stats["perplexity"][0] == pytest.approx(2**1.5, rel=1e-6)
+
+
+def test_config_validation_and_yaml_style_construction():
+    for bad in ({"kind": "lfq"}, {"kind": "ema", "num_codebooks": 2}, {"kind": "rvq", "rvq_base": "fsq"},
+                {"kind": "fsq", "fsq_levels": [1, 4]}, {"decay": 1.0}):
+        with pytest.raises(ValueError):
+            build_quantizer(QuantizerConfig(**bad))
+    cfg = from_dict(QuantizerConfig, {"kind": "fsq", "dim": 8, "fsq_levels": [4, 4]})
+    assert build_quantizer(cfg).codebook_size == 16
+
+
+@pytest.mark.parametrize("kind", ["ema_reset", "rvq", "vq", "fsq"])
+def test_state_round_trips_through_safetensors(kind, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    q = make(kind).train()
+    z = torch.randn(2, 8, 10)
+    for _ in range(3):
+        q(z)
+    save_file({k: v.contiguous() for k, v in q.state_dict().items()}, str(tmp_path / "q.safetensors"))
+    fresh = make(kind, seed=123)
+    fresh.load_state_dict(load_file(str(tmp_path / "q.safetensors")))
+    assert torch.equal(fresh.eval().encode(z), q.eval().encode(z))
+
+
+# --- distributed --------------------------------------------------------------------------
+
+DDP_CONFIGS = {
+    # threshold 1.5: codes die every step, so resets also follow the k-means init in step 1.
+    "ema_reset": dict(kind="ema_reset", codebook_size=16, dim=8, kmeans_init=True, reset_threshold=1.5),
+    # dropout 0.5, not 1.0: whether to drop must also agree across ranks.
+    "rvq": dict(kind="rvq", codebook_size=16, dim=8, num_codebooks=3, quantizer_dropout=0.5),
+    "reset": dict(kind="reset", codebook_size=16, dim=8, reset_window=2),
+    "fsq": dict(kind="fsq", dim=8, fsq_levels=[4, 4, 3]),
+}
+
+
+def _ddp_worker(rank: int, world: int, port: int, out_dir: str) -> None:
+    torch.set_num_threads(1)
+    # A timeout, so ranks issuing mismatched collectives fail the test instead of hanging it.
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world,
+                            timeout=datetime.timedelta(seconds=20))
+    try:
+        results = {}
+        for name, kw in DDP_CONFIGS.items():
+            torch.manual_seed(100 + rank)  # different initial codebooks: the first step must align them
+            q = build_quantizer(QuantizerConfig(**kw)).train()
+            g = torch.Generator().manual_seed(1000 + rank)
+            stats = []
+            for _ in range(10):
+                # Different data and different batch sizes on each rank.
+                z = (1 + rank) * torch.randn(3 + rank, 8, 6, generator=g) + rank
+                stats.append(q(z).stats)
+            results[name] = {"state": q.state_dict(), "stats": stats}
+        torch.save(results, os.path.join(out_dir, f"rank{rank}.pt"))
+    finally:
+        dist.destroy_process_group()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_process_training_keeps_codebooks_identical(tmp_path):
+    mp.spawn(_ddp_worker, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
+    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    for name in DDP_CONFIGS:
+        s0, s1 = r0[name]["state"], r1[name]["state"]
+        assert s0.keys() == s1.keys()
+        for k in s0:
+            assert torch.equal(s0[k], s1[k]), f"{name}: {k} differs between ranks"
+        assert r0[name]["stats"] == r1[name]["stats"]
+        if name != "fsq":
+            assert sum(sum(s["dead"]) for s in r0[name]["stats"]) > 0, f"{name}: no reset was exercised"
+    assert {s["num_active_codebooks"] for s in r0["rvq"]["stats"]} == {1, 2, 3}

@@ -145,6 +145,16 @@ def test_ema_kinds_have_no_parameters():
         assert list(make(kind).parameters()) == []
 
 
+@pytest.mark.parametrize("kind", CODEBOOK_KINDS)
+def test_encode_decode_and_eval_forward_leave_state_untouched(kind):
+    q = make(kind, kmeans_init=True)
+    before = {k: v.clone() for k, v in q.state_dict().items()}
+    z = torch.randn(2, q.dim, 10)
+    q.train().decode(q.encode(z))  # inference calls never update, even in training mode
+    q.eval()(z)
+    assert all(torch.equal(before[k], v) for k, v in q.state_dict().items())
+
+
 # --- EMA and reset updates ----------------------------------------------------------------
 
 def test_ema_update_on_a_hand_example():

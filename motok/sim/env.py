@@ -16,10 +16,15 @@ joint ranges, holds them for ``substeps`` physics steps, and returns
 There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
 episodes) and then calls ``reset(ids)`` for the finished environments.
 
+Public state for learners built on top (AMP discriminators, evaluators): ``bodies`` (the world
+body states after the last step or reset), ``qpos``/``qvel``, ``clip``/``frame`` and ``lib``.
+
 Stepping lives behind :class:`Stepper` (set full states, step all environments with fixed
-controls for a few substeps, report the ones that diverged). :class:`RolloutStepper` runs it
-on MuJoCo's multithreaded ``rollout`` (C++ threads, GIL released); a GPU batch simulator
-(MuJoCo Warp) is another implementation of the same three methods (docs/sim.md).
+controls for a few substeps and report the ones that diverged, give body states).
+:class:`BatchStepper` (the default) runs MuJoCo >= 4.0's ``mujoco.batch`` thread pool, which
+also computes the body kinematics natively; :class:`RolloutStepper` runs ``mujoco.rollout``
+(C++ threads, GIL released) with numpy forward kinematics. A GPU batch simulator (MuJoCo Warp)
+is a third implementation of the same three methods (docs/sim.md).
 """
 
 from __future__ import annotations
@@ -30,7 +35,8 @@ from typing import Protocol
 import numpy as np
 
 from motok.sim.humanoid import Humanoid, load_humanoid
-from motok.sim.obs import Bodies, RewardConfig, TreeKinematics, goal, max_body_error, observation, reward_terms
+from motok.sim.obs import (Bodies, RewardConfig, TreeKinematics, cross3, goal, max_body_error, observation,
+                           reward_terms)
 from motok.sim.reference import ReferenceLibrary
 
 RESET_CLEARANCE = 0.002  # m: a reference pose whose geometry dips below the floor is lifted to this height
@@ -42,23 +48,28 @@ class Stepper(Protocol):
     qpos: np.ndarray
     qvel: np.ndarray
 
-    def set_state(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None: ...
+    def set_state(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """Overwrite full states (and forget solver warm starts, so a reset env is a fresh env)."""
 
     def step(self, ctrl: np.ndarray) -> np.ndarray:
         """Advance every environment by ``substeps`` with ``ctrl (N, nu)`` held; returns a
         ``(N,)`` mask of environments whose simulation diverged (MuJoCo reset them)."""
-        ...
+
+    def bodies(self, ids: np.ndarray | None = None) -> Bodies:
+        """World body states at the current state, skeleton order, of ``ids`` (default: all)."""
 
 
 class RolloutStepper:
-    """CPU stepping with ``mujoco.rollout``: its C++ thread pool steps chunks of environments in
-    parallel without the GIL, and one call covers all substeps of a control step."""
+    """CPU stepping with ``mujoco.rollout`` (MuJoCo >= 3.2): its C++ thread pool steps chunks of
+    environments without the GIL, one call covering all substeps; kinematics by numpy FK."""
 
-    def __init__(self, model, num_envs: int, substeps: int, nthread: int = 2):
+    def __init__(self, hum: Humanoid, num_envs: int, substeps: int, nthread: int = 2):
         import mujoco
         from mujoco import rollout
 
+        model = hum.model
         self.model, self.n, self.substeps = model, num_envs, substeps
+        self.fk = TreeKinematics(hum)
         spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self.nstate = mujoco.mj_stateSize(model, spec)
         self.nthread = max(1, min(int(nthread), num_envs))
@@ -69,7 +80,7 @@ class RolloutStepper:
         self.state = np.zeros((num_envs, self.nstate))
         mujoco.mj_getState(model, d, self.state[0], spec)
         self.state[:] = self.state[0]
-        # Locate qpos/qvel inside a state row by writing marked values through MjData.
+        # Locate time, qpos and qvel inside a state row by writing marked values through MjData.
         d.time, d.qpos[:], d.qvel[:] = -1.0, np.arange(model.nq) + 1e3, np.arange(model.nv) + 1e6
         probe = np.zeros(self.nstate)
         mujoco.mj_getState(model, d, probe, spec)
@@ -92,7 +103,7 @@ class RolloutStepper:
     def set_state(self, ids, qpos, qvel) -> None:
         self.state[ids, self._q:self._q + self.model.nq] = qpos
         self.state[ids, self._v:self._v + self.model.nv] = qvel
-        self.state[ids, self._t] = 1.0
+        self.state[ids, self._t] = 1.0  # rollout itself starts every call from a zero warm start
 
     def step(self, ctrl: np.ndarray) -> np.ndarray:
         self._ctrl[:] = ctrl[:, None]
@@ -104,6 +115,78 @@ class RolloutStepper:
         expected = t0 + 0.5 * self.substeps * self.model.opt.timestep
         return (self.state[:, self._t] < expected) | ~np.isfinite(self.state).all(1)
 
+    def bodies(self, ids=None) -> Bodies:
+        return self.fk(self.qpos, self.qvel) if ids is None else self.fk(self.qpos[ids], self.qvel[ids])
+
+
+class BatchStepper:
+    """CPU stepping with ``mujoco.batch`` (MuJoCo >= 4.0): one persistent MjData per environment
+    on a native thread pool; each control step ends with the position and velocity stages at the
+    new state, so MuJoCo computes the body kinematics in the workers (and the next step reuses
+    them) instead of a numpy pass on the caller's thread."""
+
+    def __init__(self, hum: Humanoid, num_envs: int, substeps: int, nthread: int = 2):
+        import mujoco
+        from mujoco.batch import Batch
+
+        self.model, self.n, self.substeps = hum.model, num_envs, substeps
+        self._vel = int(mujoco.mjtStage.mjSTAGE_VEL)
+        self.b = Batch(hum.model, num_envs, nthread=max(1, int(nthread)), persistent=True)
+        self.qpos, self.qvel, self._ctrl = self.b.bind("qpos"), self.b.bind("qvel"), self.b.bind("ctrl")
+        self._warm = self.b.bind("qacc_warmstart")
+        self._xpos, self._xmat, self._xquat = self.b.bind("xpos"), self.b.bind("xmat"), self.b.bind("xquat")
+        self._cvel, self._com = self.b.bind("cvel"), self.b.bind("subtree_com")
+        ids = hum.body_ids
+        # Skeletons listed depth-first (Bandai-Namco's is) map to consecutive bodies: slice, not gather.
+        contiguous = np.array_equal(ids, np.arange(ids[0], ids[0] + len(ids)))
+        self._ids = slice(int(ids[0]), int(ids[0]) + len(ids)) if contiguous else ids
+        self._root = int(hum.model.body_rootid[ids[0]])  # one tree: every body's cvel refers to its com
+        self.b.forward(stage=self._vel)
+
+    def _warnings(self) -> np.ndarray:
+        return self.b.warning[..., 1].sum(-1)
+
+    def set_state(self, ids, qpos, qvel) -> None:
+        self.qpos[ids], self.qvel[ids], self._warm[ids] = qpos, qvel, 0.0
+        self.b.forward(np.asarray(ids), stage=self._vel)
+
+    def step(self, ctrl: np.ndarray) -> np.ndarray:
+        from mujoco.batch import SimulationError
+
+        before = self._warnings()
+        self._ctrl[:] = ctrl
+        failed = np.zeros(self.n, dtype=bool)
+        try:
+            self.b.step(nstep=self.substeps, stage=self._vel)
+        except SimulationError as e:  # those sims kept their previous state; the others completed
+            failed[e.ids] = True
+        return failed | (self._warnings() > before) | ~np.isfinite(self.qpos).all(1)
+
+    def bodies(self, ids=None) -> Bodies:
+        e = slice(None) if ids is None else np.asarray(ids)
+        if ids is not None and not isinstance(self._ids, slice):
+            e = e[:, None]
+        pos, cvel = self._xpos[e, self._ids], self._cvel[e, self._ids]
+        ang = cvel[..., :3]
+        vel = cvel[..., 3:] + cross3(ang, pos - self._com[e, self._root].reshape(len(pos), 1, 3))
+        # Copies: the bound arrays change at the next call, and a caller may keep these.
+        return Bodies(pos.copy(), vel, ang.copy(), rot=self._xmat[e, self._ids].reshape(len(pos), -1, 3, 3).copy(),
+                      quat=self._xquat[e, self._ids].copy())
+
+
+def make_stepper(kind: str, hum: Humanoid, num_envs: int, substeps: int, nthread: int) -> Stepper:
+    if kind == "auto":
+        try:
+            import mujoco.batch  # noqa: F401  (MuJoCo >= 4.0)
+            kind = "batch"
+        except ImportError:
+            kind = "rollout"
+    if kind == "batch":
+        return BatchStepper(hum, num_envs, substeps, nthread)
+    if kind == "rollout":
+        return RolloutStepper(hum, num_envs, substeps, nthread)
+    raise ValueError(f"unknown stepper {kind!r}: use auto, batch or rollout")
+
 
 @dataclass
 class EnvConfig:
@@ -114,6 +197,7 @@ class EnvConfig:
     termination_distance: float = 0.5  # m, any body from its reference
     early_termination: bool = True
     nthread: int = 2
+    stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available
     action_scale: float = 1.0  # q_hat = q + action_scale * a
     nan_actions: str = "raise"  # or "terminate": the env is terminated, the others step normally
     seed: int = 0
@@ -136,8 +220,7 @@ class HumanoidEnv:
         self.dt = 1.0 / hz
         self.substeps = max(1, int(round(self.dt / m.opt.timestep)))
         self.num_envs = N = c.num_envs
-        self.stepper = stepper or RolloutStepper(m, N, self.substeps, c.nthread)
-        self.fk = TreeKinematics(self.hum)
+        self.stepper = stepper or make_stepper(c.stepper, self.hum, N, self.substeps, c.nthread)
         self.hinge_adr = self.hum.hinge_qpos_adr
         self.ctrl_low, self.ctrl_high = m.actuator_ctrlrange[:, 0].copy(), m.actuator_ctrlrange[:, 1].copy()
         self.end_effectors = list(self.hum.skeleton.end_effectors)
@@ -176,11 +259,7 @@ class HumanoidEnv:
         last = self.lib.starts[clips + 1] - 1
         g = np.minimum(self.lib.starts[clips] + frames, last)
         L = self.lib
-        return Bodies.from_quat(L.body_pos[g], L.body_quat[g], L.body_vel[g], L.body_angvel[g])
-
-    def _goal_refs(self, ids: np.ndarray) -> Bodies:
-        ahead = np.arange(1, self.cfg.goal_frames + 1)
-        return self._ref(self.clip[ids, None], self.frame[ids, None] + ahead)
+        return Bodies(L.body_pos[g], L.body_vel[g], L.body_angvel[g], quat=L.body_quat[g])
 
     # ------------------------------------------------------------------ API
     def reset(self, ids=None, clips=None, frames=None) -> tuple[np.ndarray, np.ndarray]:
@@ -201,7 +280,8 @@ class HumanoidEnv:
             f = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), ids.shape).copy()
             bad = (f < 0) | (f + K + 2 > self.lib.lengths[c])
             if bad.any():
-                raise ValueError(f"start frames {f[bad].tolist()} leave fewer than {K} reference frames ahead")
+                raise ValueError(f"start frames {f[bad].tolist()} leave no step with {K} reference frames ahead "
+                                 f"(clip lengths {self.lib.lengths[c[bad]].tolist()} at {self.lib.fps:g} Hz)")
         g = self.lib.starts[c] + f
         qpos, qvel = self.lib.qpos[g].copy(), self.lib.qvel[g].copy()
         qpos[:, 2] += np.maximum(RESET_CLEARANCE - self.lib.lowest[g], 0.0)
@@ -212,16 +292,23 @@ class HumanoidEnv:
         self._update(ids)
         return self._obs.copy(), self._goal.copy()
 
-    def _update(self, ids: np.ndarray) -> None:
-        """Recompute body states (all envs) and the observation and goal rows of ``ids``."""
+    def _update(self, ids: np.ndarray, refs: Bodies | None = None) -> None:
+        """Refresh body states and the observation and goal rows of ``ids``; ``refs`` are the
+        reference bodies at frames ``frame + 1 .. frame + K`` of ``ids`` when already gathered."""
         qpos, qvel = self.stepper.qpos, self.stepper.qvel
-        self.bodies = self.fk(qpos, qvel)
+        full = len(ids) == self.num_envs
+        sim = self.stepper.bodies(None if full else ids)
+        if full or self.bodies is None:
+            self.bodies = sim if full else self.stepper.bodies()
+        else:
+            self.bodies.put(ids, sim)
         if self._obs is None:
             self._obs = np.zeros((self.num_envs, self.obs_dim))
             self._goal = np.zeros((self.num_envs, self.goal_dim))
-        sim = self.bodies.take(ids)
+        if refs is None:
+            refs = self._ref(self.clip[ids, None], self.frame[ids, None] + np.arange(1, self.cfg.goal_frames + 1))
         self._obs[ids] = observation(qpos[ids], qvel[ids], sim, self.end_effectors)
-        self._goal[ids] = goal(sim, self._goal_refs(ids))
+        self._goal[ids] = goal(sim, refs)
 
     def step(self, actions: np.ndarray):
         """Apply residual actions ``(N, nu)``; see the module docstring for what is returned."""
@@ -241,9 +328,9 @@ class HumanoidEnv:
         diverged = self.stepper.step(ctrl)
         self.frame += 1
         self.steps += 1
-        all_ids = np.arange(self.num_envs)
-        self._update(all_ids)
-        ref = self._ref(self.clip, self.frame)
+        refs = self._ref(self.clip[:, None], self.frame[:, None] + np.arange(self.cfg.goal_frames + 1))
+        self._update(np.arange(self.num_envs), refs.take((slice(None), slice(1, None))))
+        ref = refs.take((slice(None), 0))
         rewards = reward_terms(self.bodies, ref, self.cfg.reward)
         err = max_body_error(self.bodies, ref)
         fell = err > self.cfg.termination_distance if self.cfg.early_termination else np.zeros_like(diverged)
@@ -260,3 +347,30 @@ class HumanoidEnv:
         ids = np.arange(self.num_envs) if ids is None else np.asarray(ids)
         last = self.lib.starts[self.clip[ids] + 1] - 1
         return self.lib.qpos[np.minimum(self.lib.starts[self.clip[ids]] + self.frame[ids], last)]
+
+
+def pd_track(hum: Humanoid, lib: ReferenceLibrary, clips, seconds: float | None = None, nthread: int = 2) -> dict:
+    """Plain PD tracking from frame 0 of each clip (targets = next reference frame, no policy):
+    the baseline a learned expert must beat. Survival is the time until a body is 0.5 m off."""
+    ids = [lib.index(c) for c in clips]
+    steps = int(min(lib.lengths[ids].min() - 2, (seconds or 1e9) * lib.fps))
+    cfg = EnvConfig(num_envs=len(ids), early_termination=False, nthread=nthread, max_episode_seconds=1e9)
+    env = HumanoidEnv(hum, lib, cfg)
+    env.reset(clips=ids, frames=0)
+    qpos, ref_qpos = [env.qpos.copy()], [env.reference_qpos()]
+    survival = np.full(len(ids), steps / lib.fps)
+    fallen = np.zeros(len(ids), dtype=bool)
+    rewards = []
+    for t in range(steps):
+        g = np.minimum(lib.starts[env.clip] + env.frame + 1, lib.starts[env.clip + 1] - 1)
+        _, _, r, _, _, info = env.step(lib.qpos[g][:, env.hinge_adr] - env.qpos[:, env.hinge_adr])
+        new = ~fallen & ((info["max_body_error"] > env.cfg.termination_distance) | info["diverged"])
+        survival[new] = (t + 1) / lib.fps
+        fallen |= new
+        rewards.append(np.where(fallen, 0.0, r["total"]))
+        qpos.append(env.qpos.copy())
+        ref_qpos.append(env.reference_qpos())
+    return {"clips": [lib.names[i] for i in ids], "survival_s": survival, "seconds": steps / lib.fps,
+            "mean_reward": np.sum(rewards, 0) / np.maximum(np.round(survival * lib.fps), 1) if rewards
+            else np.zeros(len(ids)),
+            "qpos": np.stack(qpos, 1), "ref_qpos": np.stack(ref_qpos, 1)}

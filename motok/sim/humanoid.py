@@ -5,10 +5,8 @@ positions and no retargeting is needed. MuJoCo is Z-up and the datasets are Y-up
 with the left on +X; the map ``(x, y, z)_data -> (z, x, y)_mujoco`` is a proper rotation that
 puts the character's forward on +X, its left on +Y and up on +Z (MuJoCo's own convention).
 
-Rest geometry: bone lengths from the dataset's uniform skeleton; directions from the T-pose,
-except at branching joints (hips, chest), where the children keep the mocap's own sibling
-geometry (a Procrustes mean over sampled frames), and at the ankle, whose toe bone is pitched
-down to the median stance angle so that the box sole lies flat on the floor at qpos0.
+The rest geometry comes from the data (``motok.sim.reference.rest_geometry``): the dataset's bone
+lengths, the mocap's own sibling geometry at the hips and chest, feet pitched to lie flat at rest.
 
 Joints: a free root; three hinges per ball joint, ordered so the middle hinge is the twist
 about the child bone (twist is small because the data has none, so the Euler decomposition
@@ -126,54 +124,6 @@ def make_layout(skeleton: Skeleton, rest_mj: np.ndarray) -> Layout:
     return Layout(list(skeleton.joints), parents, rest_mj, kinds, axes)
 
 
-# ----------------------------------------------------------------------------- rest geometry
-
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Rotations ``R (F,3,3)`` minimising ``sum_k |R src_k - dst_k|^2``; src ``(K,3)``, dst ``(F,K,3)``."""
-    h = np.einsum("ki,fkj->fij", src, dst)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", vt, u)))
-    fix = np.ones(u.shape[:-1])
-    fix[:, -1] = d
-    return np.einsum("fji,fj,fkj->fik", vt, fix, u)
-
-
-def rest_geometry(joints: np.ndarray, skeleton: Skeleton, offsets: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Rest offsets ``(J,3)`` in dataset coordinates and foot measurements, from sampled frames."""
-    parents = skeleton.parents
-    lengths = np.linalg.norm(offsets, axis=-1)
-    rest = skeleton.directions * lengths[:, None]
-    bones = joints - joints[:, np.maximum(parents, 0)]
-    for j in range(skeleton.num_joints):
-        kids = np.flatnonzero(parents == j)
-        if len(kids) < 2:
-            continue
-        template = rest[kids]
-        for _ in range(3):  # generalised Procrustes: align every frame to the mean, re-average
-            r = _kabsch(template, bones[:, kids])
-            mean = np.einsum("fkj,fji->fki", bones[:, kids], r).mean(0)
-            mean *= (lengths[kids] / np.linalg.norm(mean, axis=-1))[:, None]
-            fit = _kabsch(rest[kids], mean[None])[0]  # express it in the best-fit T-pose frame
-            template = mean @ fit
-        rest[kids] = template
-    ankles = [skeleton.feet_left[0], skeleton.feet_right[0]]
-    toes = [skeleton.feet_left[1], skeleton.feet_right[1]]
-    a_y, t_y = joints[:, ankles, 1].ravel(), joints[:, toes, 1].ravel()
-    # Stance: both the toe and the ankle near their lowest; the foot's pitch there is its flat pose.
-    stance = (t_y < np.quantile(t_y, 0.3) + 0.01) & (a_y < np.quantile(a_y, 0.3) + 0.01)
-    if stance.sum() < 10:
-        stance = np.ones_like(t_y, dtype=bool)
-    toe_len = np.tile(lengths[toes], len(joints))
-    pitch = float(np.median(np.arcsin(np.clip((a_y - t_y)[stance] / toe_len[stance], -1, 1))))
-    up = np.array([0.0, 1.0, 0.0])
-    for t in toes:
-        h = rest[t] - up * rest[t][1]
-        h /= np.linalg.norm(h)
-        rest[t] = lengths[t] * (np.cos(pitch) * h - np.sin(pitch) * up)
-    foot = {"pitch": pitch, "ankle_height": float(np.median(a_y[stance])), "toe_height": float(np.median(t_y[stance]))}
-    return rest, foot
-
-
 # ----------------------------------------------------------------------------- MJCF
 
 def _fmt(v) -> str:
@@ -182,18 +132,10 @@ def _fmt(v) -> str:
 
 def _parts(layout: Layout, skeleton: Skeleton) -> dict[str, set]:
     """Joint sets by body part, from the skeleton's feet, hands and head (no names assumed)."""
-    par = layout.parents
     ankles = {skeleton.feet_left[0], skeleton.feet_right[0]}
-    toes = {skeleton.feet_left[1], skeleton.feet_right[1]}
-    hands = {e for e in skeleton.end_effectors if e not in ankles and e != skeleton.head}
-    legs, spine = set(), set()
-    for f in ankles:
-        legs.update(_chain(layout, f))
-    k = skeleton.head
-    while k >= 0:
-        spine.add(k)
-        k = par[k]
-    return {"ankles": ankles, "toes": toes, "hands": hands, "legs": legs, "spine": spine}
+    return {"ankles": ankles, "toes": {skeleton.feet_left[1], skeleton.feet_right[1]},
+            "hands": {e for e in skeleton.end_effectors if e not in ankles and e != skeleton.head},
+            "legs": {k for f in ankles for k in _chain(layout, f)}, "spine": {0, *_chain(layout, skeleton.head)}}
 
 
 # Capsule radii (m, for a 1.70 m person) by bone: the part of the body a bone parent -> child crosses.
@@ -253,51 +195,48 @@ def _geoms(layout: Layout, skeleton: Skeleton, foot: dict, s: float) -> dict[int
 
 
 def _volume(g: dict) -> float:
-    size = np.array(g["size"].split(), dtype=float)
-    if g["type"] == "sphere":
-        return 4 / 3 * np.pi * size[0] ** 3
-    if g["type"] == "box":
-        return 8 * np.prod(size)
+    r = np.array(g["size"].split(), dtype=float)
+    if g["type"] != "capsule":
+        return 4 / 3 * np.pi * r[0] ** 3 if g["type"] == "sphere" else 8 * np.prod(r)
     ft = np.array(g["fromto"].split(), dtype=float)
-    return np.pi * size[0] ** 2 * np.linalg.norm(ft[3:] - ft[:3]) + 4 / 3 * np.pi * size[0] ** 3
+    return np.pi * r[0] ** 2 * np.linalg.norm(ft[3:] - ft[:3]) + 4 / 3 * np.pi * r[0] ** 3
+
+
+_HEADER = """<mujoco model="motok_humanoid">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="{timestep:.8g}" integrator="implicitfast" iterations="{it}" ls_iterations="{ls}"/>
+  <visual><global offwidth="1280" offheight="720"/><quality shadowsize="2048"/></visual>
+  <asset>
+    <texture name="grid" type="2d" builtin="checker" rgb1=".82 .84 .86" rgb2=".7 .72 .76" width="512" height="512"/>
+    <texture name="sky" type="skybox" builtin="gradient" rgb1=".96 .96 .95" rgb2=".8 .84 .9" width="256" height="256"/>
+    <material name="floor" texture="grid" texrepeat="8 8" reflectance="0.05"/>
+    <material name="body" rgba=".85 .6 .42 1"/>
+  </asset>
+  <default>
+    <joint armature="{armature:g}" damping="0" limited="true"/>
+    <geom density="{density:.9g}" friction="{friction:g} 0.005 0.0001" material="body" condim="3" contype="1"
+          conaffinity="{self_collide}"/>
+    <position ctrllimited="true"/>
+  </default>
+  <worldbody>
+    <light name="sun" pos="0 0 4" dir="0 0 -1" directional="true" castshadow="true" diffuse=".8 .8 .8"/>
+    <geom name="floor" type="plane" size="0 0 0.05" material="floor" contype="1" conaffinity="1"/>
+  </worldbody>
+</mujoco>"""
 
 
 def _mjcf(layout: Layout, geoms: dict, cfg: HumanoidConfig, density: float, ranges: dict, gains: dict,
           excludes: list, meta: dict) -> str:
-    root = ET.Element("mujoco", model="motok_humanoid")
-    ET.SubElement(root, "compiler", angle="radian", autolimits="true")
-    ET.SubElement(root, "option", timestep=f"{cfg.timestep:.8g}", integrator="implicitfast",
-                  iterations=str(cfg.solver_iterations), ls_iterations=str(max(4, cfg.solver_iterations // 2)))
-    vis = ET.SubElement(root, "visual")
-    ET.SubElement(vis, "global", offwidth="1280", offheight="720")
-    ET.SubElement(vis, "quality", shadowsize="2048")
-    asset = ET.SubElement(root, "asset")
-    ET.SubElement(asset, "texture", name="grid", type="2d", builtin="checker", rgb1=".82 .84 .86", rgb2=".7 .72 .76",
-                  width="512", height="512")
-    ET.SubElement(asset, "material", name="floor", texture="grid", texrepeat="8 8", reflectance="0.05")
-    ET.SubElement(asset, "material", name="body", rgba=".85 .6 .42 1")
-    ET.SubElement(asset, "texture", name="sky", type="skybox", builtin="gradient", rgb1=".96 .96 .95", rgb2=".8 .84 .9",
-                  width="256", height="256")
-    default = ET.SubElement(root, "default")
-    ET.SubElement(default, "joint", armature=f"{cfg.armature:g}", damping="0", limited="true")
-    ET.SubElement(default, "geom", density=f"{density:.6g}", friction=f"{cfg.friction:g} 0.005 0.0001",
-                  material="body", condim="3", contype="1", conaffinity="1" if cfg.self_collision else "0")
-    ET.SubElement(default, "position", ctrllimited="true")
-    world = ET.SubElement(root, "worldbody")
-    ET.SubElement(world, "light", name="sun", pos="0 0 4", dir="0 0 -1", directional="true", castshadow="true",
-                  diffuse=".8 .8 .8")
-    ET.SubElement(world, "geom", name="floor", type="plane", size="0 0 0.05", material="floor", conaffinity="1",
-                  contype="1", condim="3", friction=f"{cfg.friction:g} 0.005 0.0001")
-    elems = {}
+    root = ET.fromstring(_HEADER.format(timestep=cfg.timestep, it=cfg.solver_iterations,
+                                        ls=max(4, cfg.solver_iterations // 2), armature=cfg.armature, density=density,
+                                        friction=cfg.friction, self_collide=int(cfg.self_collision)))
+    elems = {-1: root.find("worldbody")}
     for j, name in enumerate(layout.names):
         p = layout.parents[j]
-        parent = world if p < 0 else elems[p]
         pos = layout.rest[j] if p >= 0 else np.array([0, 0, meta["root_height"]])
-        b = ET.SubElement(parent, "body", name=name, pos=_fmt(pos))
-        elems[j] = b
+        b = elems[j] = ET.SubElement(elems[p], "body", name=name, pos=_fmt(pos))
         if layout.kinds[j] == "free":
             ET.SubElement(b, "freejoint", name="root")
-            ET.SubElement(b, "camera", name="track", mode="trackcom", pos="-0.6 -3.2 0.5", xyaxes="1 -0.18 0 0.05 0.3 1")
         for k, a in enumerate(layout.axes[j]):
             hn = f"{name}_{a[-1]}"
             ET.SubElement(b, "joint", name=hn, type="hinge", axis=_fmt(layout.axis_vectors(j)[k]), range=_fmt(ranges[hn]))
@@ -311,8 +250,7 @@ def _mjcf(layout: Layout, geoms: dict, cfg: HumanoidConfig, density: float, rang
         kp = gains[hn]
         ET.SubElement(act, "position", name=hn, joint=hn, kp=f"{kp:.6g}", kv=f"{kp * cfg.derivative_time:.6g}",
                       ctrlrange=_fmt(ranges[hn]))
-    custom = ET.SubElement(root, "custom")
-    ET.SubElement(custom, "text", name=META_NAME, data=json.dumps(meta, separators=(",", ":")))
+    ET.SubElement(ET.SubElement(root, "custom"), "text", name=META_NAME, data=json.dumps(meta, separators=(",", ":")))
     ET.indent(root)
     return ET.tostring(root, encoding="unicode")
 
@@ -320,18 +258,11 @@ def _mjcf(layout: Layout, geoms: dict, cfg: HumanoidConfig, density: float, rang
 def _moved_mass(model, layout: Layout, skeleton: Skeleton, body_ids: np.ndarray) -> dict[str, float]:
     """Mass each hinge moves: its subtree, or for leg joints the larger side (a stance leg carries the body)."""
     total = float(model.body_subtreemass[body_ids[0]])
-    legs = set()
-    for f in (skeleton.feet_left[0], skeleton.feet_right[0]):
-        k = f
-        while k > 0:
-            legs.add(k)
-            k = layout.parents[k]
+    legs = set(_chain(layout, skeleton.feet_left[0])) | set(_chain(layout, skeleton.feet_right[0]))
     out = {}
     for j, name in enumerate(layout.names):
         sub = float(model.body_subtreemass[body_ids[j]])
-        m = max(sub, total - sub) if j in legs else sub
-        for a in layout.axes[j]:
-            out[f"{name}_{a[-1]}"] = m
+        out.update({f"{name}_{a[-1]}": max(sub, total - sub) if j in legs else sub for a in layout.axes[j]})
     return out
 
 
@@ -341,7 +272,7 @@ def build_humanoid(data_path, out, cfg: HumanoidConfig | None = None) -> dict:
 
     from motok.artifacts import command_line, hash_inputs
     from motok.data.dataset import MotionFile
-    from motok.sim.reference import solve_pose
+    from motok.sim.reference import rest_geometry, solve_pose
 
     cfg = cfg or HumanoidConfig()
     with MotionFile(data_path, "motion-dataset") as mf:
@@ -453,53 +384,41 @@ def load_humanoid(path) -> Humanoid:
 def humanoid_from_model(model, path=None) -> Humanoid:
     import mujoco
 
-    where = path or "<model>"
-    tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, META_NAME)
+    where, obj = path or "<model>", mujoco.mjtObj
+    tid = mujoco.mj_name2id(model, obj.mjOBJ_TEXT, META_NAME)
     if tid < 0:
         raise HumanoidError(f"{where}: not a motok humanoid (no <custom><text name='{META_NAME}'>); "
                             "build one with `motok sim build-humanoid`")
-    adr, size = model.text_adr[tid], model.text_size[tid]
-    raw = bytes(model.text_data[adr:adr + size]).split(b"\0")[0].decode()
+    raw = bytes(model.text_data[model.text_adr[tid]:model.text_adr[tid] + model.text_size[tid]]).split(b"\0")[0]
     try:
-        meta = json.loads(raw)
+        meta = json.loads(raw.decode())
     except json.JSONDecodeError as e:
         raise HumanoidError(f"{where}: corrupt motok metadata ({e})") from None
     if meta.get("version") != META_VERSION:
         raise HumanoidError(f"{where}: humanoid format version {meta.get('version')} is not {META_VERSION}; rebuild it")
     skeleton = Skeleton.from_dict(meta["skeleton"], source=f"{where}:{META_NAME}")
-    ids, rest, kinds, axes, qadr = [], [], [], [], []
+    ids, kinds, axes, qadr = [], [], [], []
     for j, name in enumerate(skeleton.joints):
-        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        b, p = mujoco.mj_name2id(model, obj.mjOBJ_BODY, name), skeleton.parents[j]
         if b < 0:
             raise HumanoidError(f"{where}: the skeleton's joint {name!r} has no body of that name")
-        p = skeleton.parents[j]
-        if p >= 0 and model.body_parentid[b] != ids[p]:
-            raise HumanoidError(f"{where}: body {name!r} must be a child of {skeleton.joints[p]!r}")
+        if (p >= 0 and model.body_parentid[b] != ids[p]) or not np.allclose(model.body_quat[b], [1, 0, 0, 0]):
+            raise HumanoidError(f"{where}: body {name!r} must be an unrotated child of {skeleton.joints[p]!r}")
         ids.append(b)
-        rest.append(model.body_pos[b].copy())
-        jn = range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
-        types = [model.jnt_type[k] for k in jn]
-        if p < 0:
-            if types != [mujoco.mjtJoint.mjJNT_FREE]:
-                raise HumanoidError(f"{where}: root body {name!r} needs exactly one free joint")
-            kinds.append("free"), axes.append([]), qadr.append(np.zeros(0, dtype=np.int64))
-            continue
-        if any(t != mujoco.mjtJoint.mjJNT_HINGE for t in types) or len(types) not in (0, 1, 3):
-            raise HumanoidError(f"{where}: body {name!r} must have 0, 1 or 3 hinge joints")
-        names = []
-        for k in jn:
-            a = model.jnt_axis[k]
-            i = int(np.argmax(np.abs(a)))
-            if abs(abs(a[i]) - 1) > 1e-6:
-                raise HumanoidError(f"{where}: hinge {mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, k)} "
-                                    "must have a body-axis-aligned axis")
-            names.append(("" if a[i] > 0 else "-") + "xyz"[i])
-        kinds.append({0: "fixed", 1: "hinge", 3: "ball"}[len(types)])
-        axes.append(names)
-        qadr.append(np.array([model.jnt_qposadr[k] for k in jn], dtype=np.int64))
-        if not np.allclose(model.body_quat[b], [1, 0, 0, 0]):
-            raise HumanoidError(f"{where}: body {name!r} must have an identity orientation")
-    if model.nu != sum(len(a) for a in axes):
-        raise HumanoidError(f"{where}: expected one actuator per hinge ({sum(len(a) for a in axes)}), found {model.nu}")
-    layout = Layout(list(skeleton.joints), skeleton.parents, np.array(rest), kinds, axes)
+        jn = list(range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b]))
+        types = [int(model.jnt_type[k]) for k in jn]
+        want = [int(mujoco.mjtJoint.mjJNT_FREE)] if p < 0 else [int(mujoco.mjtJoint.mjJNT_HINGE)] * len(types)
+        ax = model.jnt_axis[jn]
+        if types != want or len(types) not in ((1,) if p < 0 else (0, 1, 3)) or \
+                (p >= 0 and len(jn) and not np.allclose(np.abs(ax).max(-1), 1.0)):
+            raise HumanoidError(f"{where}: body {name!r} needs a free joint (root) or 0, 1 or 3 body-axis hinges")
+        kinds.append("free" if p < 0 else {0: "fixed", 1: "hinge", 3: "ball"}[len(jn)])
+        axes.append([] if p < 0 else [("" if a.max() > 0.5 else "-") + "xyz"[int(np.abs(a).argmax())] for a in ax])
+        qadr.append(np.array([] if p < 0 else model.jnt_qposadr[jn], dtype=np.int64))
+    hinges = np.concatenate([q for q in qadr if len(q)])
+    driven = model.jnt_qposadr[model.actuator_trnid[:, 0]] if model.nu else np.zeros(0, dtype=int)
+    if model.nu != len(hinges) or not np.array_equal(driven, hinges):
+        raise HumanoidError(f"{where}: expected one position actuator per hinge, in skeleton order")
+    rest = model.body_pos[ids].copy()
+    layout = Layout(list(skeleton.joints), skeleton.parents, rest, kinds, axes)
     return Humanoid(model, skeleton, layout, np.array(ids), qadr, meta, Path(path) if path else None)

@@ -43,29 +43,41 @@ class RewardConfig:
     w_ang_vel: float = 0.1
 
 
-@dataclass
 class Bodies:
-    """World-frame body states ``(N, ..., J, .)`` in skeleton order: positions, rotation matrices
-    (body to world), linear velocities at the body origins and angular velocities."""
+    """World-frame body states ``(N, ..., J, .)`` in skeleton order: positions, orientations,
+    linear velocities at the body origins and angular velocities. Orientations are held as
+    rotation matrices (body to world) and/or unit quaternions (w, x, y, z); either is derived
+    from the other on first use, so each producer gives what it has for free."""
 
-    pos: np.ndarray
-    rot: np.ndarray
-    vel: np.ndarray
-    angvel: np.ndarray
+    def __init__(self, pos, vel, angvel, rot=None, quat=None):
+        self.pos, self.vel, self.angvel, self._rot, self._quat = pos, vel, angvel, rot, quat
 
-    def take(self, ids) -> "Bodies":
-        return Bodies(self.pos[ids], self.rot[ids], self.vel[ids], self.angvel[ids])
+    @property
+    def rot(self) -> np.ndarray:
+        if self._rot is None:
+            self._rot = quat_to_matrix(self._quat)
+        return self._rot
 
     @property
     def quat(self) -> np.ndarray:
-        return matrix_to_quat(self.rot)
+        if self._quat is None:
+            self._quat = matrix_to_quat(self._rot)
+        return self._quat
 
-    @classmethod
-    def from_quat(cls, pos, quat, vel, angvel) -> "Bodies":
-        return cls(pos, quat_to_matrix(quat), vel, angvel)
+    def take(self, ids) -> "Bodies":
+        return Bodies(self.pos[ids], self.vel[ids], self.angvel[ids], None if self._rot is None else self._rot[ids],
+                      None if self._quat is None else self._quat[ids])
+
+    def put(self, ids, other: "Bodies") -> None:
+        """Overwrite the rows ``ids`` with ``other``'s (both forms kept consistent)."""
+        self.pos[ids], self.vel[ids], self.angvel[ids] = other.pos, other.vel, other.angvel
+        if self._rot is not None:
+            self._rot[ids] = other.rot
+        if self._quat is not None:
+            self._quat[ids] = other.quat
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., [1, 2, 0]] * b[..., [2, 0, 1]] - a[..., [2, 0, 1]] * b[..., [1, 2, 0]]
 
 
@@ -138,49 +150,57 @@ class TreeKinematics:
             rot[:, lv] = rp @ local[:, lv]
             pos[:, lv] = pos[:, p] + _mv(rp, self.rest[lv])
             ang[:, lv] = ang[:, p] + _mv(rp, wloc[:, lv])
-            vel[:, lv] = vel[:, p] + _cross(ang[:, p], pos[:, lv] - pos[:, p])
-        return Bodies(pos, rot, vel, ang)
+            vel[:, lv] = vel[:, p] + cross3(ang[:, p], pos[:, lv] - pos[:, p])
+        return Bodies(pos, vel, ang, rot=rot)
 
 
-def heading_inv(root_rot: np.ndarray) -> np.ndarray:
-    """``(..., 3, 3)`` yaw rotations undoing the heading of the root's forward (+X) axis."""
-    yaw = np.arctan2(root_rot[..., 1, 0], root_rot[..., 0, 0])
-    c, s = np.cos(yaw), np.sin(yaw)
-    h = np.zeros(yaw.shape + (3, 3))
-    h[..., 0, 0], h[..., 0, 1], h[..., 1, 0], h[..., 1, 1], h[..., 2, 2] = c, s, -s, c, 1.0
-    return h
+def heading(root_rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cosine and sine of the yaw of the root's forward (+X) axis, ``(...)`` each."""
+    fx, fy = root_rot[..., 0, 0], root_rot[..., 1, 0]
+    n = np.maximum(np.hypot(fx, fy), 1e-9)  # the forward axis pointing straight up has no heading
+    return fx / n, fy / n
 
 
-def _six(m: np.ndarray) -> np.ndarray:
-    """6D rotation features: the first two matrix columns (Zhou et al. 2019)."""
-    return np.concatenate([m[..., :, 0], m[..., :, 1]], -1)
+def unyaw(c: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors ``(..., 3)`` by minus the heading: world -> heading frame (elementwise, no matmul)."""
+    x, y = v[..., 0], v[..., 1]
+    return np.stack([c * x + s * y, c * y - s * x, v[..., 2]], -1)
 
 
 def observation(qpos: np.ndarray, qvel: np.ndarray, bodies: Bodies, end_effectors) -> np.ndarray:
     """Eq. 7, ``(N, 1 + 6 + 3 + 3 + 2H + 3E)``."""
-    h = heading_inv(bodies.rot[:, 0])
-    ee = _mv(h[:, None], bodies.pos[:, end_effectors] - bodies.pos[:, :1])
-    return np.concatenate([
-        bodies.pos[:, 0, 2:3], _six(h @ bodies.rot[:, 0]), _mv(h, bodies.vel[:, 0]), _mv(h, bodies.angvel[:, 0]),
-        qpos[:, 7:], qvel[:, 6:], ee.reshape(len(qpos), -1)], -1)
+    N = len(qpos)
+    c, s = heading(bodies.rot[:, 0])
+    root = bodies.rot[:, 0]
+    six = unyaw(c[:, None], s[:, None], np.stack([root[..., 0], root[..., 1]], 1)).reshape(N, 6)
+    vecs = np.concatenate([bodies.vel[:, :1], bodies.angvel[:, :1], bodies.pos[:, end_effectors] - bodies.pos[:, :1]], 1)
+    vecs = unyaw(c[:, None], s[:, None], vecs).reshape(N, -1)
+    return np.concatenate([bodies.pos[:, 0, 2:3], six, vecs[:, :6], qpos[:, 7:], qvel[:, 6:], vecs[:, 6:]], -1)
 
 
 def goal(sim: Bodies, ref: Bodies) -> np.ndarray:
     """Eq. 9, ``(N, K * J * 15)`` from sim bodies ``(N, J, .)`` and reference bodies ``(N, K, J, .)``."""
     N, K, J = ref.pos.shape[:3]
-    h = heading_inv(sim.rot[:, 0])[:, None, None]  # (N,1,1,3,3)
-    dp = _mv(h, ref.pos - sim.pos[:, None])
-    dr = h @ ref.rot @ np.swapaxes(sim.rot, -1, -2)[:, None] @ np.swapaxes(h, -1, -2)
-    dv = _mv(h, ref.vel - sim.vel[:, None])
-    dw = _mv(h, ref.angvel - sim.angvel[:, None])
-    return np.concatenate([dp, _six(dr), dv, dw], -1).reshape(N, K * J * 15)
+    c, s = heading(sim.rot[:, 0])
+    c, s = c[:, None, None, None], s[:, None, None, None]
+    qs, qr = sim.quat[:, None], ref.quat
+    # q_d = q_ref conj(q_sim), the rotation taking sim to ref. Conjugating it by the heading
+    # (H R_d H^T, PHC's form) only turns its vector part by minus the heading, done with the rest.
+    w = (qr * qs).sum(-1)
+    v = qs[..., :1] * qr[..., 1:] - qr[..., :1] * qs[..., 1:] - cross3(qr[..., 1:], qs[..., 1:])
+    d = unyaw(c, s, np.stack([ref.pos - sim.pos[:, None], v, ref.vel - sim.vel[:, None],
+                              ref.angvel - sim.angvel[:, None]], -2))  # (N, K, J, 4, 3)
+    x, y, z = d[..., 1, 0], d[..., 1, 1], d[..., 1, 2]
+    six = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y),
+                    2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], -1)  # R_d's first two columns
+    return np.concatenate([d[..., 0, :], six, d[..., 2, :], d[..., 3, :]], -1).reshape(N, K * J * 15)
 
 
 def reward_terms(sim: Bodies, ref: Bodies, cfg: RewardConfig) -> dict[str, np.ndarray]:
     """Eq. 10: per-term rewards in [0, 1] and their weighted ``total``, each ``(N,)``."""
     e_pos = ((sim.pos - ref.pos) ** 2).sum(-1).mean(-1)
-    cos = 0.5 * ((ref.rot * sim.rot).sum((-1, -2)) - 1.0)  # trace(R_ref R_sim^T) = 1 + 2 cos(angle)
-    e_rot = (np.arccos(np.clip(cos, -1.0, 1.0)) ** 2).mean(-1)
+    half = np.arccos(np.clip(np.abs((ref.quat * sim.quat).sum(-1)), 0.0, 1.0))  # |w| of q_ref conj(q_sim)
+    e_rot = ((2.0 * half) ** 2).mean(-1)
     e_vel = ((sim.vel - ref.vel) ** 2).sum(-1).mean(-1)
     e_ang = ((sim.angvel - ref.angvel) ** 2).sum(-1).mean(-1)
     r = {"pos": np.exp(-cfg.scale_pos * e_pos), "rot": np.exp(-cfg.scale_rot * e_rot),

@@ -1,4 +1,10 @@
-"""Reference motions for the humanoid: dataset clips as qpos/qvel and body states at the control rate.
+"""From the dataset to the humanoid: rest geometry, inverse kinematics, and the reference library
+(dataset clips as qpos/qvel and body states at the control rate).
+
+Rest geometry (:func:`rest_geometry`, used by the MJCF builder): bone lengths from the dataset's
+uniform skeleton; directions from the T-pose, except at branching joints (hips, chest), where the
+children keep the mocap's own sibling geometry (a Procrustes mean over sampled frames), and at the
+ankles, whose toe bones are pitched down to the median stance angle so the sole is flat at rest.
 
 Inverse kinematics (:func:`solve_locals`): the dataset stores HumanML3D per-bone rotations
 (siblings rotate independently, no twist), which a body tree cannot use, so per-joint rotations
@@ -31,9 +37,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from motok.data.skeleton import Skeleton
 from motok.features.resample import resample_positions, resample_quats
 from motok.rotations import matrix_to_quat, qbetween, qfix, qinv, qmul, qrot, quat_to_euler
-from motok.sim.humanoid import Humanoid, Layout, _kabsch, to_mj
+from motok.sim.humanoid import Humanoid, Layout, to_mj
 
 LIB_VERSION = 1
 BEND_BLEND = 0.02  # |thigh x shin| (sine of the bend) below which the swing axis takes over
@@ -41,6 +48,52 @@ BEND_BLEND = 0.02  # |thigh x shin| (sine of the bend) below which the swing axi
 
 class ReferenceError(KeyError):
     pass
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rotations ``R (F,3,3)`` minimising ``sum_k |R src_k - dst_k|^2``; src ``(K,3)``, dst ``(F,K,3)``."""
+    h = np.einsum("ki,fkj->fij", src, dst)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", vt, u)))
+    fix = np.ones(u.shape[:-1])
+    fix[:, -1] = d
+    return np.einsum("fji,fj,fkj->fik", vt, fix, u)
+
+
+def rest_geometry(joints: np.ndarray, skeleton: Skeleton, offsets: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Rest offsets ``(J,3)`` in dataset coordinates and foot measurements, from sampled frames."""
+    parents = skeleton.parents
+    lengths = np.linalg.norm(offsets, axis=-1)
+    rest = skeleton.directions * lengths[:, None]
+    bones = joints - joints[:, np.maximum(parents, 0)]
+    for j in range(skeleton.num_joints):
+        kids = np.flatnonzero(parents == j)
+        if len(kids) < 2:
+            continue
+        template = rest[kids]
+        for _ in range(3):  # generalised Procrustes: align every frame to the mean, re-average
+            r = _kabsch(template, bones[:, kids])
+            mean = np.einsum("fkj,fji->fki", bones[:, kids], r).mean(0)
+            mean *= (lengths[kids] / np.linalg.norm(mean, axis=-1))[:, None]
+            fit = _kabsch(rest[kids], mean[None])[0]  # express it in the best-fit T-pose frame
+            template = mean @ fit
+        rest[kids] = template
+    ankles = [skeleton.feet_left[0], skeleton.feet_right[0]]
+    toes = [skeleton.feet_left[1], skeleton.feet_right[1]]
+    a_y, t_y = joints[:, ankles, 1].ravel(), joints[:, toes, 1].ravel()
+    # Stance: both the toe and the ankle near their lowest; the foot's pitch there is its flat pose.
+    stance = (t_y < np.quantile(t_y, 0.3) + 0.01) & (a_y < np.quantile(a_y, 0.3) + 0.01)
+    if stance.sum() < 10:
+        stance = np.ones_like(t_y, dtype=bool)
+    toe_len = np.tile(lengths[toes], len(joints))
+    pitch = float(np.median(np.arcsin(np.clip((a_y - t_y)[stance] / toe_len[stance], -1, 1))))
+    up = np.array([0.0, 1.0, 0.0])
+    for t in toes:
+        h = rest[t] - up * rest[t][1]
+        h /= np.linalg.norm(h)
+        rest[t] = lengths[t] * (np.cos(pitch) * h - np.sin(pitch) * up)
+    foot = {"pitch": pitch, "ankle_height": float(np.median(a_y[stance])), "toe_height": float(np.median(t_y[stance]))}
+    return rest, foot
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -214,9 +267,8 @@ class ReferenceLibrary:
     def __len__(self) -> int:
         return len(self.names)
 
-    @property
-    def lengths(self) -> np.ndarray:
-        return np.diff(self.starts)
+    def __post_init__(self):
+        self.lengths = np.diff(self.starts)  # frames per clip
 
     def index(self, clip) -> int:
         if isinstance(clip, (int, np.integer)):
@@ -313,3 +365,21 @@ def load_library(hum: Humanoid, data_path, control_hz: float | None = None, clip
     cache.mkdir(parents=True, exist_ok=True)
     lib.save(path)
     return lib
+
+
+def humanoid_for(data_path, cache_dir=None):
+    """The default humanoid of a dataset (built once, cached next to the reference libraries)."""
+    from motok.artifacts import sha256_file
+    from motok.sim.humanoid import build_humanoid, load_humanoid
+
+    cache = Path(cache_dir) if cache_dir else default_cache_dir()
+    path = cache / f"{Path(data_path).stem}-{sha256_file(data_path)[:16]}.xml"
+    if not path.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.xml")
+        try:
+            build_humanoid(data_path, tmp)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+    return load_humanoid(path)

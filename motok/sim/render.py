@@ -30,6 +30,9 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
     d = mujoco.MjData(m)
     dg = mujoco.MjData(m) if ghost is not None else None
     renderer = mujoco.Renderer(m, height=size[1], width=size[0])
+    # Software GL (llvmpipe behind EGL) spends most of a frame on shadow maps and reflections.
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
     cam = mujoco.MjvCamera()
     cam.type = mujoco.mjtCamera.mjCAMERA_FREE
     cam.distance, cam.elevation, cam.azimuth = 3.4, -12.0, 120.0
@@ -51,9 +54,23 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
                 mujoco.mjv_addGeoms(m, dg, opt, mujoco.MjvPerturb(), mujoco.mjtCatBit.mjCAT_DYNAMIC, scn)
                 for i in range(start, scn.ngeom):
                     scn.geoms[i].rgba[:] = (0.3, 0.55, 0.95, 0.35)
-            yield renderer.render()
+            yield _caption(renderer.render(), title)
     finally:
         renderer.close()
+
+
+def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
+    if not title:
+        return img
+    from PIL import Image, ImageDraw, ImageFont
+
+    im = Image.fromarray(img)
+    try:
+        font = ImageFont.load_default(size=max(12, img.shape[0] // 32))
+    except TypeError:  # Pillow < 10.1: fixed-size bitmap font
+        font = ImageFont.load_default()
+    ImageDraw.Draw(im).text((10, 8), title, fill=(40, 40, 48), font=font)
+    return np.asarray(im)
 
 
 def _write(frames, out: Path, fps: float) -> None:

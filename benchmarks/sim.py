@@ -1,0 +1,161 @@
+"""Simulation speed: the humanoid's raw ``mj_step`` rate (the physical limit) against the batched
+environment's control steps per second, observation, goal, reward, termination and resets
+included, at N = 1, 16, 64, 256 environments on 2 threads.
+
+The environment is driven by plain PD tracking (targets = next reference frame) with
+reference-state resets of the environments that fall, so it visits the states training does.
+Every (state, control) pair it steps is recorded, and the raw rate is measured by stepping
+exactly those pairs again with ``mujoco.rollout`` in C++ (no Python per step) on 1 and on 2
+threads. ratio = env steps/s x substeps / raw 2-thread steps/s: the share of the machine's
+physics throughput that survives the environment's Python.
+
+    .venv/bin/python benchmarks/sim.py [--data DATA.h5] [--seconds 3] [--repeats 3]
+
+Other jobs may share the cores, and their load drifts within seconds: every environment run is
+paired with a raw-rate run just before it, each ratio uses its own pair, and the table gives the
+best environment rate with the median and range of the ratios over ``--repeats`` pairs. The
+load average is printed; rerun on a quiet machine for the real ceiling.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from motok.sim.humanoid import build_humanoid, load_humanoid  # before mujoco (sets MUJOCO_GL when headless)
+from motok.sim.env import EnvConfig, HumanoidEnv  # noqa: E402
+from motok.sim.reference import load_library  # noqa: E402
+
+import mujoco  # noqa: E402
+from mujoco import rollout  # noqa: E402
+
+
+def _dataset(tmp: Path) -> Path:
+    """The 24 walk_normal clips of Bandai-Namco set 2, preprocessed (as the test fixture does)."""
+    from motok.data.preprocess import PreprocessConfig, preprocess
+    from motok.data.root import resolve_data_root
+
+    root = resolve_data_root(None) / "bandai-namco"
+    cfg = PreprocessConfig(inputs=[str(root / "bandai-namco-2.tar.xz")], annotations=str(root / "annotations"),
+                           pattern="dataset-2_walk_normal_*", skeleton="bandai21")
+    out = tmp / "walk_normal.h5"
+    preprocess(cfg, out, command="benchmarks/sim.py")
+    return out
+
+
+def _pd(env: HumanoidEnv) -> np.ndarray:
+    L = env.lib
+    g = np.minimum(L.starts[env.clip] + env.frame + 1, L.starts[env.clip + 1] - 1)
+    return L.qpos[g][:, env.hinge_adr] - env.qpos[:, env.hinge_adr]
+
+
+def run_env(hum, lib, n: int, stepper: str, seconds: float, record: list | None = None) -> tuple[float, float]:
+    """Control steps per second (env-steps/s = this x n), and the CPU seconds per control step the
+    calling thread spends outside the stepper's physics call (observation, goal, reward, resets,
+    bookkeeping). Thread CPU time, unlike wall time, does not count time lost to other processes."""
+    env = HumanoidEnv(hum, lib, EnvConfig(num_envs=n, nthread=2, stepper=stepper, seed=0))
+    env.reset()
+    for _ in range(5):
+        env.step(_pd(env))
+    inner, physics = env.stepper.step, [0.0]
+
+    def timed(ctrl):
+        t = time.thread_time()
+        out = inner(ctrl)
+        physics[0] += time.thread_time() - t
+        return out
+
+    env.stepper.step = timed
+    steps, t0, c0 = 0, time.perf_counter(), time.thread_time()
+    while time.perf_counter() - t0 < seconds:
+        a = _pd(env)
+        if record is not None:
+            q = env.qpos[:, env.hinge_adr]
+            record.append((env.qpos.copy(), env.qvel.copy(), np.clip(q + a, env.ctrl_low, env.ctrl_high)))
+        _, _, _, term, trunc, _ = env.step(a)
+        done = np.flatnonzero(term | trunc)
+        if len(done):
+            env.reset(done)
+        steps += 1
+    return steps / (time.perf_counter() - t0), (time.thread_time() - c0 - physics[0]) / steps
+
+
+def raw_rate(hum, pairs, substeps: int, nthread: int, cpu: bool = False) -> float:
+    """mj_step/s stepping the recorded (state, control) pairs in C++ rollouts; with ``cpu`` (one
+    thread, on the caller's) per second of the thread's CPU time instead of wall time."""
+    m = hum.model
+    d = mujoco.MjData(m)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    qpos = np.concatenate([p[0] for p in pairs])
+    qvel = np.concatenate([p[1] for p in pairs])
+    ctrl = np.concatenate([p[2] for p in pairs])
+    state = np.zeros((len(qpos), mujoco.mj_stateSize(m, spec)))
+    for i in range(len(qpos)):
+        d.qpos[:], d.qvel[:] = qpos[i], qvel[i]
+        mujoco.mj_getState(m, d, state[i], spec)
+    control = np.ascontiguousarray(np.repeat(ctrl[:, None], substeps, 1))
+    out = np.zeros((len(qpos), substeps, state.shape[1]))
+    datas = [mujoco.MjData(m) for _ in range(nthread)]
+    with rollout.Rollout(nthread=nthread if nthread > 1 else 0) as pool:
+        pool.rollout([m] * len(qpos), datas, state, control, nstep=substeps, state=out)  # warm the pool up
+        clock = time.thread_time if cpu else time.perf_counter
+        t0 = clock()
+        pool.rollout([m] * len(qpos), datas, state, control, nstep=substeps, state=out)
+        return len(qpos) * substeps / (clock() - t0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=None, help="motion-dataset (default: walk_normal slice of set 2)")
+    ap.add_argument("--humanoid", type=Path, default=None)
+    ap.add_argument("--envs", type=int, nargs="*", default=[1, 16, 64, 256])
+    ap.add_argument("--steppers", nargs="*", default=["batch", "rollout"])
+    ap.add_argument("--seconds", type=float, default=3.0, help="timed seconds per measurement")
+    ap.add_argument("--repeats", type=int, default=3, help="best of this many runs")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data or _dataset(Path(tmp))
+        xml = args.humanoid or Path(tmp) / "humanoid.xml"
+        if args.humanoid is None:
+            build_humanoid(data, xml)
+        hum = load_humanoid(xml)
+        lib = load_library(hum, data, cache_dir=tmp)
+    S = hum.substeps
+    print(f"humanoid: {hum.model.nbody - 1} bodies, {hum.model.nu} hinges, timestep 1/{1 / hum.model.opt.timestep:.0f} s, "
+          f"{S} substeps per {hum.control_hz:g} Hz control step; mujoco {mujoco.__version__}; "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    pairs: list = []
+    run_env(hum, lib, 64, args.steppers[0], min(args.seconds, 2.0), record=pairs)
+    raw1 = max(raw_rate(hum, pairs, S, 1) for _ in range(args.repeats))
+    raw2 = max(raw_rate(hum, pairs, S, 2) for _ in range(args.repeats))
+    raw_cpu = max(raw_rate(hum, pairs, S, 1, cpu=True) for _ in range(args.repeats))
+    print(f"raw mj_step rate on {sum(len(p[0]) for p in pairs)} recorded env states (best of {args.repeats}): "
+          f"{raw1:,.0f} steps/s on 1 thread, {raw2:,.0f} steps/s on 2 threads, {raw_cpu:,.0f} per CPU second")
+    print("ratio: env mj_step/s over the raw 2-thread rate measured just before. python: CPU ms per control step")
+    print("of the calling thread outside physics. quiet: projected ratio on two idle cores, the physics at twice")
+    print("the raw rate per CPU second plus that Python time, both in CPU time (see docs/sim.md)")
+    print(f"{'stepper':>8} {'N':>4} {'ctrl steps/s':>13} {'env-steps/s':>12} {'mj_step/s':>10} {'raw 2-thr':>10} "
+          f"{'ratio':>6} {'(range)':>12} {'python ms':>10} {'quiet':>6}")
+    for stepper in args.steppers:
+        for n in args.envs:
+            runs = []
+            for _ in range(args.repeats):
+                raw = raw_rate(hum, pairs, S, 2)
+                runs.append((*run_env(hum, lib, n, stepper, args.seconds), raw))
+            ratios = [r * n * S / raw for r, _, raw in runs]
+            rate, _, raw = max(runs)
+            py_ms = 1e3 * min(py for _, py, _ in runs)
+            phys_quiet = 1e3 * n * S / (2 * raw_cpu)
+            print(f"{stepper:>8} {n:>4} {rate:>13,.1f} {rate * n:>12,.0f} {rate * n * S:>10,.0f} {raw:>10,.0f} "
+                  f"{np.median(ratios):>6.2f} {f'{min(ratios):.2f}-{max(ratios):.2f}':>12} {py_ms:>10.2f} "
+                  f"{phys_quiet / (phys_quiet + py_ms):>6.2f}", flush=True)
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()

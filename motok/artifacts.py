@@ -29,6 +29,7 @@ KINDS: dict[str, tuple[int, ...]] = {
     "motion-dataset": (1,),
     "motion": (1,),
     "tokens": (1,),
+    "text-embeddings": (1,),
 }
 
 

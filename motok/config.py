@@ -7,6 +7,7 @@ so numbers, booleans and lists come out typed.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import types
 import typing
@@ -52,6 +53,11 @@ def _coerce(value, tp, where: str):
         out = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
         return out if origin is list else tuple(out)
     if tp is float:
+        if isinstance(value, str):  # YAML 1.1 reads 1e-3 (no dot) as a string
+            try:
+                value = float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         return float(value)
@@ -93,7 +99,7 @@ def parse_override(item: str) -> tuple[list[str], Any]:
 
 def load_config(cls: type[T], recipe: str | Path | None = None, overrides=(), base: dict | None = None) -> T:
     """Defaults of ``cls`` <- ``base`` <- the recipe file <- ``--set`` overrides."""
-    d: dict[str, Any] = to_dict(cls()) if base is None else dict(base)
+    d: dict[str, Any] = to_dict(cls()) if base is None else copy.deepcopy(base)
     where = "config"
     if recipe is not None:
         path = Path(recipe)

@@ -31,7 +31,7 @@ def describe(path: str | Path, n_captions: int = 3) -> dict:
         if "clips/split" in f:
             d["splits"] = dict(Counter(read_strings(f["clips/split"])))
             d["clips"] = len(f["clips/name"])
-            d["frames"] = int(f["clips/offset"][-1])
+            d["frames" if d["kind"] in ("motion-dataset", "motion") else "rows"] = int(f["clips/offset"][-1])
         if "captions/text" in f and len(f["captions/text"]):
             names = read_strings(f["clips/name"])
             texts = f["captions/text"][:n_captions]
@@ -65,7 +65,9 @@ def print_description(d: dict, console) -> None:
     if prov.get("skipped"):
         console.print(f"  [yellow]skipped {len(prov['skipped'])} bad input(s)[/], e.g. {prov['skipped'][0]}")
     if "clips" in d:
-        console.print(f"{d['clips']} clips, {d['frames']} frames; splits {d['splits']}")
+        rows = d.get("frames", d.get("rows"))
+        unit = "frames" if "frames" in d else "rows"
+        console.print(f"{d['clips']} clips, {rows} {unit}; splits {d['splits']}")
     attrs = {k: v for k, v in d["attributes"].items() if not isinstance(v, dict)}
     if attrs:
         console.print("attributes: " + ", ".join(f"{k}={v}" for k, v in attrs.items()))

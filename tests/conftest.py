@@ -41,20 +41,46 @@ def golden_features(golden_dir) -> np.ndarray:
 
 
 SLICE_PATTERN = "dataset-2_walk_normal_*"
+LABELLED_PATTERN = "dataset-2_*_00[1-3]"  # 10 contents x 7 styles x 3 takes: 210 clips, 70 label sets
 
 
 @pytest.fixture(scope="session")
-def bandai_slice(tmp_path_factory, bandai2_archive) -> Path:
-    """The 24 `walk_normal` clips of set 2, pulled out of the real archive once per session."""
+def bandai_slices(tmp_path_factory, bandai2_archive) -> dict[str, Path]:
+    """Two folders of real clips pulled out of the archive in one streaming pass per session:
+    ``walk``: the 24 `walk_normal` clips (one label); ``labelled``: takes 1-3 of every
+    content x style (210 clips), for anything that needs negatives across labels."""
     import fnmatch
     import tarfile
 
-    out = tmp_path_factory.mktemp("bandai-slice")
+    out = {"walk": tmp_path_factory.mktemp("bandai-slice"), "labelled": tmp_path_factory.mktemp("bandai-labelled")}
     with tarfile.open(bandai2_archive, "r|xz") as tar:
         for m in tar:
             name = Path(m.name).name
-            if m.isfile() and fnmatch.fnmatchcase(name, SLICE_PATTERN + ".bvh"):
-                (out / name).write_bytes(tar.extractfile(m).read())
+            if not (m.isfile() and name.endswith(".bvh")):
+                continue
+            hits = [k for k, pat in (("walk", SLICE_PATTERN), ("labelled", LABELLED_PATTERN))
+                    if fnmatch.fnmatchcase(name, pat + ".bvh")]
+            if hits:
+                data = tar.extractfile(m).read()
+                for k in hits:
+                    (out[k] / name).write_bytes(data)
+    return out
+
+
+@pytest.fixture(scope="session")
+def bandai_slice(bandai_slices) -> Path:
+    return bandai_slices["walk"]
+
+
+@pytest.fixture(scope="session")
+def labelled_dataset(tmp_path_factory, bandai_slices, bandai_dir) -> Path:
+    """A real motion-dataset of every content x style label of set 2 (takes 1-3)."""
+    from motok.data.preprocess import PreprocessConfig, preprocess
+
+    out = tmp_path_factory.mktemp("labelled-data") / "labelled.h5"
+    cfg = PreprocessConfig(inputs=[str(bandai_slices["labelled"])], annotations=str(bandai_dir / "annotations"),
+                           pattern=LABELLED_PATTERN, skeleton="bandai21")
+    preprocess(cfg, out, command="pytest labelled_dataset")
     return out
 
 

@@ -43,3 +43,9 @@ def test_unknown_and_mistyped_keys(tmp_path):
         load_config(Cfg, None, ["steps"])
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(Cfg, tmp_path / "missing.yaml")
+
+
+def test_base_is_not_mutated_and_exponents_parse():
+    base = {"name": "x", "steps": 1, "flag": False, "maybe": None, "optim": {"lr": 0.1, "betas": [0.9, 0.99]}}
+    cfg = load_config(Cfg, None, ["optim.lr=1e-3"], base=base)
+    assert cfg.optim.lr == 1e-3 and base["optim"]["lr"] == 0.1

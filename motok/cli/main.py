@@ -18,6 +18,14 @@ export_app = typer.Typer(help="Export motion to other formats.", no_args_is_help
 app.add_typer(export_app, name="export")
 from motok.cli.tokenize import app as tokenize_app
 app.add_typer(tokenize_app, name="tokenize")
+from motok.cli.gpt import app as gpt_app
+app.add_typer(gpt_app, name="gpt")
+from motok.cli.sim import app as sim_app
+app.add_typer(sim_app, name="sim")
+from motok.cli.eval import app as eval_app
+app.add_typer(eval_app, name="eval")
+from motok.cli.control import app as control_app
+app.add_typer(control_app, name="control")
 
 DataRoot = typer.Option(None, "--data-root", help="Data folder (else $MOTOK_DATA, else ../shared/datasets).")
 Recipe = typer.Option(None, "--recipe", help="YAML recipe (see recipes/).")

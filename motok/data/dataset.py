@@ -99,6 +99,7 @@ class MotionFile:
         self.splits = read_strings(f["clips/split"])
         self.frame_offsets = f["clips/offset"][()]
         self._index = {n: i for i, n in enumerate(self.names)}
+        self._captions = None
 
     def __enter__(self):
         return self
@@ -134,10 +135,11 @@ class MotionFile:
 
     def captions(self, clip) -> list[tuple[str, float, float]]:
         i = self.index(clip)
-        g = self.h5["captions"]
-        sel = np.flatnonzero(g["clip"][()] == i)
-        texts = read_strings(g["text"])
-        return [(texts[j], float(g["start"][j]), float(g["end"][j])) for j in sel]
+        if self._captions is None:  # read once: per-call reads made whole-dataset loops quadratic
+            g = self.h5["captions"]
+            self._captions = (g["clip"][()], read_strings(g["text"]), g["start"][()], g["end"][()])
+        owner, texts, start, end = self._captions
+        return [(texts[j], float(start[j]), float(end[j])) for j in np.flatnonzero(owner == i)]
 
     def clip(self, clip) -> Clip:
         i = self.index(clip)
@@ -146,8 +148,8 @@ class MotionFile:
             name=self.names[i],
             features=self.frames("features", i), joints=self.frames("joints", i),
             local_quats=self.frames("local_quats", i), root_translation=self.frames("root_translation", i),
-            source=read_strings(c["source"])[i], source_fps=float(c["source_fps"][i]), split=self.splits[i],
-            labels=json.loads(read_strings(c["labels"])[i]),
+            source=_str(c["source"][i]), source_fps=float(c["source_fps"][i]), split=self.splits[i],
+            labels=json.loads(c["labels"][i]),
             captions=[(t, "", s, e) for t, s, e in self.captions(i)],
         )
 
@@ -158,3 +160,7 @@ class MotionFile:
         if "stats" not in self.h5:
             raise KeyError(f"{self.path}: a {self.kind} artifact has no statistics")
         return self.h5["stats/mean"][()], self.h5["stats/std"][()]
+
+
+def _str(v) -> str:
+    return v.decode("utf-8") if isinstance(v, bytes) else str(v)

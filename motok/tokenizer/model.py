@@ -1,6 +1,6 @@
 """The T2M-GPT motion VQ-VAE (Zhang et al. 2023, Sec. 3.1 and appendix F): a 1D convolutional
 encoder that downsamples time by ``2**down_t``, a quantizer (:mod:`motok.tokenizer.quantize`),
-and a mirrored decoder with nearest-neighbour upsampling.
+and a mirrored decoder with nearest-neighbour upsampling; and its training loss (Eq. 2-3).
 
 Shapes follow the motion artifacts: features are ``(B, T, D)`` with ``D = 12J - 1``; the
 convolutions see ``(B, D, T)``; the latent is ``(B, C, T / 2**down_t)``; indices are
@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
+from motok.features.humanml3d import feature_slices
 from motok.tokenizer.quantize import QuantizerConfig, build_quantizer
 
 ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU}
@@ -23,7 +25,7 @@ ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU}
 @dataclass
 class ModelConfig:
     """Encoder/decoder shape. The code dimension is ``quantizer.dim`` (one source of truth)."""
-    width: int = 256
+    width: int = 128  # 512 in the paper; recipes/tokenizer/paper.yaml
     down_t: int = 2  # number of stride-2 stages: temporal rate 2**down_t
     depth: int = 3  # residual blocks per stage
     dilation_growth: int = 3  # dilations growth**k, applied largest first: (9, 3, 1)
@@ -84,6 +86,15 @@ class Decoder(nn.Module):
 
     def forward(self, z):
         return self.net(z)
+
+
+@dataclass
+class LossConfig:
+    alpha_vel: float = 0.5  # weight of the velocity term (paper: 0.5)
+    vel_block: str = "ric"  # "ric": root-relative joint positions (official block) | "all": every feature
+    vel_diff: bool = True  # frame-to-frame difference as in Eq. 3; false reproduces the official code
+    beta_commit: float = 0.02  # commitment weight beta; multiplied by quantizer.beta (default 1)
+    codebook: float = 1.0  # weight of the codebook term ||sg(Z) - Z_q||^2 (Eq. 2); zero for EMA kinds
 
 
 @dataclass
@@ -162,3 +173,30 @@ class VQVAE(nn.Module):
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+def vqvae_loss(recon: torch.Tensor, target: torch.Tensor, losses: dict, cfg: LossConfig,
+               num_joints: int, beta_scale: float = 1.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """T2M-GPT Eq. 2-3 with the official smooth-L1; returns the total and its detached parts.
+
+    ``SL1(X, X_re) + alpha SL1(V(X), V(X_re)) + beta ||Z - sg(Z_q)||^2 + w ||sg(Z) - Z_q||^2``: ``V`` is
+    the frame-to-frame difference (``vel_diff``) of the joint-position block (``vel_block=ric``)
+    or of every feature (``all``); the codebook term exists only for gradient-learned codebooks.
+    """
+    target = target[:, : recon.shape[1]]
+    rec = F.smooth_l1_loss(recon, target)
+    if cfg.vel_block == "ric":
+        sl = feature_slices(num_joints)["ric"]
+        a, b = recon[..., sl], target[..., sl]
+    elif cfg.vel_block == "all":
+        a, b = recon, target
+    else:
+        raise ValueError(f"loss.vel_block {cfg.vel_block!r}: choose ric or all")
+    if cfg.vel_diff:
+        a, b = a[:, 1:] - a[:, :-1], b[:, 1:] - b[:, :-1]
+    vel = F.smooth_l1_loss(a, b)
+    commit = losses["commit"]
+    codebook = losses.get("codebook", torch.zeros((), device=recon.device))
+    total = rec + cfg.alpha_vel * vel + cfg.beta_commit * beta_scale * commit + cfg.codebook * codebook
+    parts = {"loss": total, "recon": rec, "vel": vel, "commit": commit, "codebook": codebook}
+    return total, {k: v.detach() for k, v in parts.items()}

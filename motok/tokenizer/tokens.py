@@ -77,7 +77,7 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
         cap_text, cap_tok = read_strings(g["text"]), read_strings(g["tokens"])
         labels = read_strings(mf.h5["clips/labels"])
         prov_in = hash_inputs([data])
-        prov_in[str(run / "model.safetensors")] = meta["model_sha256"]
+        prov_in[f"{run}#weights"] = meta["model_sha256"]  # tensor hash, as bundle.json model_sha256
         prov = Provenance(command=command or command_line(),
                           config={"tokenizer": str(run), "data": str(data), "num_codebooks": m, "split": split},
                           inputs=prov_in, skipped=skipped)
@@ -127,6 +127,7 @@ class TokenFile:
         self.skeleton = Skeleton.from_dict(json.loads(self.h5["skeleton"].attrs["definition"]),
                                            source=f"{path}:/skeleton")
         self.skeleton_offsets = self.h5["skeleton/offsets"][()]
+        self._captions = None
 
     def __enter__(self):
         return self
@@ -145,10 +146,12 @@ class TokenFile:
         return self.h5["tokens"][self.offsets[i]:self.offsets[i + 1]]
 
     def captions(self, i: int) -> list[tuple]:
-        g = self.h5["captions"]
-        sel = np.flatnonzero(g["clip"][()] == i)
-        text, tok = read_strings(g["text"]), read_strings(g["tokens"])
-        return [(text[j], tok[j], float(g["start"][j]), float(g["end"][j])) for j in sel]
+        if self._captions is None:  # read once: per-clip string reads make decoding quadratic
+            g = self.h5["captions"]
+            self._captions = (g["clip"][()], read_strings(g["text"]), read_strings(g["tokens"]),
+                              g["start"][()], g["end"][()])
+        clip, text, tok, start, end = self._captions
+        return [(text[j], tok[j], float(start[j]), float(end[j])) for j in np.flatnonzero(clip == i)]
 
 
 # --------------------------------------------------------------------------- decode
@@ -184,7 +187,7 @@ def decode(run: str | Path, tokens: str | Path, out: str | Path, num_codebooks: 
                 bar.advance(task)
         prov = Provenance(command=command or command_line(),
                           config={"tokenizer": str(run), "tokens": str(tokens), "num_codebooks": m},
-                          inputs={**hash_inputs([tokens]), str(run / "model.safetensors"): meta["model_sha256"]})
+                          inputs={**hash_inputs([tokens]), f"{run}#weights": meta["model_sha256"]})
         write_motion(out, "motion", prov, clips, skeleton, np.asarray(ex["offsets"], dtype=np.float32),
                      float(ex["fps"]), bool(ex["legacy"]))
     return {"output": str(out), "clips": len(clips), "frames": int(sum(c.num_frames for c in clips)),

@@ -1,9 +1,8 @@
-"""Training the motion VQ-VAE (T2M-GPT Sec. 3.1, Eq. 2-3; training details in Sec. 4.1/appendix).
+"""Training the motion VQ-VAE (T2M-GPT Sec. 3.1 and Sec. 4.1 / appendix F for the settings).
 
-Loss (Eq. 3 with the smooth-L1 of the official code):
-``L = SL1(X, X_re) + alpha * SL1(V(X), V(X_re)) + beta * ||Z - sg(Z_q)||^2 (+ ||sg(Z) - Z_q||^2 for plain VQ)``
-where ``V`` takes the frame-to-frame difference of the joint-position (``ric``) block by default
-(docs/tokenizer.md explains the choice; ``loss.vel_block`` / ``loss.vel_diff`` select the others).
+Loss: :func:`motok.tokenizer.model.vqvae_loss` (Eq. 2-3). Optimizer: AdamW (0.9, 0.99) with a
+linear warm-up, then the learning rate times ``gamma`` at each milestone. Data: random
+``window``-frame crops of the training split, normalized with the data set's mean/std.
 
 Runs unchanged under ``torchrun``: with ``WORLD_SIZE > 1`` it joins the process group from the
 environment (gloo on CPU, NCCL on GPU), wraps the model in DistributedDataParallel, splits the
@@ -14,6 +13,7 @@ so ``K`` iterations + resume to ``2K`` is bitwise equal to ``2K`` straight.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import time
@@ -23,28 +23,17 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
-import torch.nn.functional as F
 
 from motok import progress as _progress
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.checkpoint import MetricsLog, load_bundle, register_kind, rng_state, save_bundle, set_rng_state, sha256_state
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
-from motok.features.humanml3d import feature_slices
-from motok.tokenizer.model import ModelConfig, VQVAE
+from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss  # noqa: F401 (re-exported)
 from motok.tokenizer.quantize import QuantizerConfig
 
 KIND = "tokenizer"
 register_kind(KIND, (1,))
-
-
-@dataclass
-class LossConfig:
-    alpha_vel: float = 0.5  # weight of the velocity term (paper: 0.5)
-    vel_block: str = "ric"  # "ric": root-relative joint positions (official block) | "all": every feature
-    vel_diff: bool = True  # frame-to-frame difference as in Eq. 3; false reproduces the official code
-    beta_commit: float = 0.02  # commitment weight beta; multiplied by quantizer.beta (default 1)
-    codebook: float = 1.0  # weight of the codebook term ||sg(Z) - Z_q||^2 (Eq. 2); zero for EMA kinds
 
 
 @dataclass
@@ -143,29 +132,7 @@ class WindowSampler:
         return d.features[rows]
 
 
-# --------------------------------------------------------------------------- loss, optimizer
-
-def vqvae_loss(recon: torch.Tensor, target: torch.Tensor, losses: dict, cfg: LossConfig,
-               num_joints: int, beta_scale: float = 1.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """T2M-GPT Eq. 3 (smooth-L1 variant); returns the total and its detached parts."""
-    target = target[:, : recon.shape[1]]
-    rec = F.smooth_l1_loss(recon, target)
-    if cfg.vel_block == "ric":
-        sl = feature_slices(num_joints)["ric"]
-        a, b = recon[..., sl], target[..., sl]
-    elif cfg.vel_block == "all":
-        a, b = recon, target
-    else:
-        raise ConfigError(f"loss.vel_block {cfg.vel_block!r}: choose ric or all")
-    if cfg.vel_diff:
-        a, b = a[:, 1:] - a[:, :-1], b[:, 1:] - b[:, :-1]
-    vel = F.smooth_l1_loss(a, b)
-    commit = losses["commit"]
-    codebook = losses.get("codebook", torch.zeros((), device=recon.device))
-    total = rec + cfg.alpha_vel * vel + cfg.beta_commit * beta_scale * commit + cfg.codebook * codebook
-    parts = {"loss": total, "recon": rec, "vel": vel, "commit": commit, "codebook": codebook}
-    return total, {k: v.detach() for k, v in parts.items()}
-
+# --------------------------------------------------------------------------- optimizer
 
 def lr_factor(it: int, cfg: OptimConfig) -> float:
     """Linear warm-up over ``warmup`` iterations, then x gamma at each milestone (Sec. 4.1)."""
@@ -230,13 +197,38 @@ def gather(obj, d: Dist) -> list:
 
 # --------------------------------------------------------------------------- config & bundle
 
+def check_config(cfg: TrainConfig) -> TrainConfig:
+    """Fail before any work on values the dataclass types cannot rule out."""
+    from motok.tokenizer.model import ACTIVATIONS
+    from motok.tokenizer.quantize import build_quantizer
+    try:
+        build_quantizer(cfg.quantizer)
+    except ValueError as e:
+        raise ConfigError(f"quantizer: {e}") from None
+    problems = []
+    if cfg.model.activation not in ACTIVATIONS:
+        problems.append(f"model.activation {cfg.model.activation!r} is not one of {sorted(ACTIVATIONS)}")
+    if cfg.loss.vel_block not in ("ric", "all"):
+        problems.append(f"loss.vel_block {cfg.loss.vel_block!r} is not ric or all")
+    if cfg.model.width < 1 or cfg.model.depth < 1 or cfg.model.down_t < 0:
+        problems.append("model.width and model.depth must be >= 1, model.down_t >= 0")
+    if cfg.iterations < 1 or cfg.batch_size < 1 or cfg.log_every < 1 or cfg.save_every < 1:
+        problems.append("iterations, batch_size, log_every and save_every must be >= 1")
+    if cfg.window < 1 or cfg.window % 2 ** cfg.model.down_t:
+        problems.append(f"window {cfg.window} must be a positive multiple of the rate {2 ** cfg.model.down_t}")
+    if problems:
+        raise ConfigError("; ".join(problems))
+    return cfg
+
+
 def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: bool = False) -> TrainConfig:
     """Recipe + overrides; on resume the saved config is the base and the recipe must not change it."""
     if not resume:
-        return load_config(TrainConfig, recipe, overrides)
+        return check_config(load_config(TrainConfig, recipe, overrides))
     meta, _, _ = load_bundle(run, KIND)
     saved = meta["config"]
-    cfg = load_config(TrainConfig, None, overrides, base=saved)
+    # A deep copy: load_config copies the base shallowly and --set writes into nested sections.
+    cfg = load_config(TrainConfig, None, overrides, base=copy.deepcopy(saved))
     if recipe is not None:
         fresh = to_dict(load_config(TrainConfig, recipe, overrides))
         changed = [k for k in ("model", "quantizer", "loss", "window") if fresh[k] != to_dict(cfg)[k]]
@@ -245,7 +237,7 @@ def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: b
     for k in ("model", "quantizer", "window", "batch_size", "seed"):
         if to_dict(cfg)[k] != saved[k]:
             raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
-    return cfg
+    return check_config(cfg)
 
 
 def build_model(meta_or_cfg: dict | TrainConfig, feature_dim: int) -> VQVAE:
@@ -287,15 +279,22 @@ def train(cfg: TrainConfig, data_path: str | Path, run: str | Path, resume: bool
 
 
 def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
+    check_config(cfg)
     if cfg.batch_size % d.world:
         raise TokenizerError(f"batch_size {cfg.batch_size} does not split over {d.world} ranks")
-    if cfg.window % 2 ** cfg.model.down_t:
-        raise TokenizerError(f"window {cfg.window} is not a multiple of the rate {2 ** cfg.model.down_t}")
+    if not data_path.is_file():
+        raise FileNotFoundError(f"{data_path}: no such file")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     device = pick_device(cfg.device, d)
     inputs = hash_inputs([data_path])
     data_hash = inputs[str(data_path)]
+    saved = load_bundle(run, KIND, with_train_state=True) if resume else None
+    if saved is not None:
+        if saved[0]["extra"].get("dataset_sha256") != data_hash:
+            raise TokenizerError(f"--resume: {data_path} is not the data set {run} was trained on (hash differs)")
+        if int(saved[2]["world_size"]) != d.world:
+            raise TokenizerError(f"--resume: saved with {int(saved[2]['world_size'])} ranks, now {d.world}")
     data = load_train_data(data_path, cfg.split, cfg.window)
     J = data.meta["num_joints"]
 
@@ -309,12 +308,8 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
     sampler = WindowSampler(data, cfg.window, cfg.batch_size // d.world, cfg.seed, d.rank)
 
     start = 0
-    if resume:
-        meta, state, ts = load_bundle(run, KIND, with_train_state=True)
-        if meta["extra"].get("dataset_sha256") != data_hash:
-            raise TokenizerError(f"--resume: {data_path} is not the data set {run} was trained on (hash differs)")
-        if int(ts["world_size"]) != d.world:
-            raise TokenizerError(f"--resume: saved with {int(ts['world_size'])} ranks, now {d.world}")
+    if saved is not None:
+        _, state, ts = saved
         model.load_state_dict(state)
         opt.load_state_dict(ts["optimizer"])
         sched.load_state_dict(ts["scheduler"])

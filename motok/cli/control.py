@@ -1,0 +1,98 @@
+"""``motok control``: physics-based controllers. ``expert train`` / ``expert eval`` parse
+arguments only; the work is in ``motok.control.expert``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from motok import progress as _progress
+
+app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP).", no_args_is_help=True)
+expert_app = typer.Typer(help="The hybrid-latent paper's expert policy (appendix B.2).", no_args_is_help=True)
+app.add_typer(expert_app, name="expert")
+
+
+def _run(fn, *args, **kwargs):
+    from motok.checkpoint import CheckpointError
+    from motok.cli.main import fail, run
+    from motok.sim.humanoid import HumanoidError
+    try:
+        return run(fn, *args, **kwargs)
+    except (CheckpointError, HumanoidError, ValueError) as e:
+        fail(str(e))
+
+
+@expert_app.command("train")
+def train_cmd(
+    data: Path = typer.Option(..., "--data", help="A motion-dataset artifact (.h5)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle, metrics.jsonl)."),
+    clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob, e.g. 'dataset-2_walk_normal*'."),
+    recipe: Optional[Path] = typer.Option(None, "--recipe", help="YAML recipe (recipes/control/)."),
+    sets: list[str] = typer.Option([], "--set", help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
+    humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+):
+    """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
+    from motok.cli.main import _report
+    from motok.config import load_config
+    from motok.control.expert import ExpertConfig, select_clips, train
+
+    cfg = _run(load_config, ExpertConfig, recipe, sets)
+
+    def go():
+        from motok.sim.humanoid import load_humanoid
+        from motok.sim.reference import humanoid_for, load_library
+        hum = load_humanoid(out / "humanoid.xml") if resume and (out / "humanoid.xml").exists() else (
+            load_humanoid(humanoid) if humanoid else humanoid_for(data))
+        lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips))
+        return train(cfg, out, hum, lib, resume=resume, data=data)
+
+    _report(_run(go), as_json, title="control expert train")
+
+
+@expert_app.command("eval")
+def eval_cmd(
+    run_dir: Path = typer.Option(..., "--run", help="A control-expert run folder."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Dataset (default: the one it was trained on)."),
+    clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob (default: the training clips)."),
+    render: Optional[Path] = typer.Option(None, "--render", help="Video of the first clip (.mp4/.gif)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the full results as JSON."),
+):
+    """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
+    from motok.control.expert import evaluate, load_expert, select_clips
+
+    def go():
+        from motok.sim.reference import load_library
+        cfg, hum, ac, meta = load_expert(run_dir)
+        src = data or meta["extra"].get("data")
+        if not src:
+            raise ValueError(f"{run_dir} does not record its dataset: pass --data")
+        names = select_clips(src, clips) if clips else meta["extra"]["clips"]
+        res = evaluate(cfg, hum, ac, load_library(hum, src, control_hz=cfg.env.control_hz, clips=names), render)
+        (run_dir / "eval.json").write_text(json.dumps(res, indent=2))
+        return res
+
+    res = _run(go)
+    if as_json:
+        typer.echo(json.dumps(res, indent=2))
+        return
+    from rich.table import Table
+    cols = ["success", "seconds", "mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm"]
+    t = Table(title=f"expert eval ({run_dir}); errors in mm, mm/frame, mm/frame^2")
+    t.add_column("clip", no_wrap=True)
+    for c in cols:
+        t.add_column(c.replace("_err_mm", "_err").replace("_mm", ""), justify="right")
+    fmt = lambda v: ("yes" if v else "no") if isinstance(v, bool) else f"{v:.2f}"  # noqa: E731
+    for name, r in res["clips"].items():
+        t.add_row(name, *[fmt(r[c]) for c in cols])
+    o = res["overall"]
+    t.add_row("[bold]overall", f"{o['success_rate']:.0%}", f"{o['seconds_played']:.1f}",
+              *[f"{o[c]:.2f}" for c in cols[2:]])
+    _progress.console.print(t)
+    if "video" in res:
+        _progress.info(f"wrote {res['video']}")

@@ -1,0 +1,103 @@
+"""``motok gpt``: train the text-to-motion transformer and sample motions from text (argument parsing only)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes): train, sample.",
+                  no_args_is_help=True)
+
+
+def _run(fn, *args, **kwargs):
+    """User errors become one line and exit code 2 (the root CLI's convention)."""
+    from motok.checkpoint import CheckpointError
+    from motok.cli.main import fail, run
+    from motok.gpt.train import GPTError
+    from motok.text.encoders import TextEncoderError
+    from motok.tokenizer.train import TokenizerError
+
+    def guarded():
+        try:
+            return fn(*args, **kwargs)
+        except (CheckpointError, GPTError, TextEncoderError, TokenizerError) as e:
+            fail(str(e))
+    return run(guarded)
+
+
+def _report(summary: dict, as_json: bool, title: str):
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2, default=str))
+        return
+    from rich.markup import escape
+    from rich.table import Table
+
+    from motok.progress import console
+    files = [summary["output"]] if "names" in summary else []
+    files += summary.get("render", []) + summary.get("bvh", [])
+    t = Table(title=title, show_header=False)
+    for k, v in summary.items():
+        if k in ("render", "bvh", "names") or (files and k == "output"):
+            continue
+        if isinstance(v, list):
+            v = ", ".join(map(str, v))
+        t.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
+    console.print(t)
+    # Paths unwrapped, one per line, so they can be copied whatever the terminal width.
+    for f in files:
+        console.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)
+
+
+@app.command()
+def train(
+    tokens: Path = typer.Option(..., "--tokens", help="A tokens artifact (from `tokenize encode`) with captions."),
+    out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle + metrics.jsonl)."),
+    recipe: Optional[Path] = typer.Option(None, "--recipe", help="YAML recipe (recipes/gpt/)."),
+    sets: list[str] = typer.Option([], "--set", help="Override a config key: --set key=value (repeatable)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+):
+    """Train the GPT; runs unchanged under `torchrun --nproc_per_node N --no-python motok ...`."""
+    from motok.gpt.train import resolve_config
+    from motok.gpt.train import train as _train
+    cfg = _run(resolve_config, recipe, sets, out, resume)
+    summary = _run(_train, cfg, tokens, out, resume=resume)
+    if int(os.environ.get("RANK", "0")) == 0:
+        _report(summary, as_json, "gpt train")
+
+
+@app.command()
+def sample(
+    gpt: Path = typer.Option(..., "--gpt", help="A GPT run folder (from `gpt train`)."),
+    text: list[str] = typer.Option([], "--text", help="A sentence (repeatable)."),
+    texts_file: Optional[Path] = typer.Option(None, "--texts-file", help="One sentence per line."),
+    num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per text."),
+    seed: int = typer.Option(0, "--seed", help="Sample j uses seed + j."),
+    temperature: float = typer.Option(1.0, "--temperature"),
+    top_k: Optional[int] = typer.Option(None, "--top-k", help="Keep the k most likely codes."),
+    top_p: Optional[float] = typer.Option(None, "--top-p", help="Nucleus: keep the codes holding p of the mass."),
+    argmax: bool = typer.Option(False, "--argmax", help="Greedy: the most likely code at each step."),
+    seconds: Optional[float] = typer.Option(None, "--seconds", help="Target length: End masked before, forced at."),
+    out: Path = typer.Option(..., "-o", "--out", help="Output motion artifact (.h5)."),
+    render: Optional[Path] = typer.Option(None, "--render", help="Also render OUT.gif/.mp4/.png (numbered if several)."),
+    bvh: Optional[Path] = typer.Option(None, "--bvh", help="Also export OUT.bvh (numbered if several)."),
+    tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", help="Tokenizer run (default: the one trained with)."),
+    allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode with another tokenizer."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+):
+    """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went."""
+    from motok.gpt.sample import sample as _sample
+    texts = list(text)
+    if texts_file is not None:
+        if not texts_file.is_file():
+            from motok.cli.main import fail
+            fail(f"--texts-file {texts_file}: no such file")
+        texts += [ln.strip() for ln in texts_file.read_text().splitlines() if ln.strip()]
+    summary = _run(_sample, gpt, texts, out, num_samples=num_samples, seed=seed, temperature=temperature,
+                   top_k=top_k, top_p=top_p, argmax=argmax, seconds=seconds, render=render, bvh=bvh,
+                   tokenizer=tokenizer, allow_mismatch=allow_mismatch)
+    _report(summary, as_json, "gpt sample")

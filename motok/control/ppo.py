@@ -1,0 +1,176 @@
+"""Proximal Policy Optimisation (Schulman et al. 2017), written so every trick is a named line.
+
+The tricks, in the order a rollout meets them (the names follow CleanRL's
+``ppo_continuous_action.py`` and "The 37 implementation details of PPO"):
+
+1. **Vectorised rollouts**: ``horizon`` steps of N environments per iteration (:class:`Rollout`).
+2. **Running observation normalisation** (``networks.RunningNorm``), updated during rollouts and
+   stored in the buffer as the policy saw it, so old and new log-probabilities agree.
+3. **Gaussian actions** with a fixed or learned state-independent log-std (``networks``).
+4. **GAE** (:func:`gae`, gamma 0.99, lambda 0.95) that **bootstraps on time-limit truncation but
+   not on termination**: a truncated step's target uses ``V(final observation)``, a terminated
+   step's uses 0, and the advantage recursion stops at both (the next state is a reset).
+5. **Advantage normalisation** per minibatch.
+6. **Clipped surrogate objective** (:func:`policy_loss`, clip 0.2).
+7. **Value loss**, optionally clipped around the old values (:func:`value_loss`).
+8. **Entropy bonus** (often 0 with a fixed std, where it is a constant).
+9. **Minibatches and epochs** over the flattened rollout, reshuffled each epoch.
+10. **Global gradient-norm clipping**.
+11. **Learning-rate schedule** (:func:`learning_rate`: constant, linear or cosine decay).
+12. **Optional early stop** of the epochs when the approximate KL exceeds ``target_kl``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from motok.control.networks import ActorCritic
+
+
+@dataclass
+class PPOConfig:
+    horizon: int = 32  # steps per environment per iteration
+    epochs: int = 5
+    minibatch_size: int = 512
+    gamma: float = 0.99
+    lam: float = 0.95
+    clip: float = 0.2
+    clip_value: bool = False
+    value_clip: float = 0.2  # only with clip_value; in return units, so tight for large returns
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    max_grad_norm: float = 1.0
+    lr: float = 3e-4
+    lr_schedule: str = "constant"  # constant | linear | cosine (to lr_min at the last iteration)
+    lr_min: float = 0.0
+    adam_eps: float = 1e-5
+    norm_adv: bool = True
+    target_kl: float | None = None
+
+
+def gae(rewards, values, next_values, terminated, truncated, gamma: float, lam: float):
+    """Generalised advantage estimation over ``(T, N)`` tensors.
+
+    ``next_values[t]`` is the value of the state reached by step t: ``V(s_{t+1})`` mid-episode,
+    ``V(final observation)`` when step t was truncated (the episode did not really end, so its
+    future is bootstrapped), anything when it was terminated (masked out: no future). The
+    recursion ``A_t = delta_t + gamma lam A_{t+1}`` is cut at every episode end either way,
+    because step t+1 then belongs to a new episode. Returns ``(advantages, returns)``.
+    """
+    term = terminated.to(rewards.dtype)
+    done = (terminated | truncated).to(rewards.dtype)
+    delta = rewards + gamma * next_values * (1.0 - term) - values
+    adv = torch.zeros_like(rewards)
+    acc = torch.zeros_like(rewards[0])
+    for t in range(len(rewards) - 1, -1, -1):
+        acc = delta[t] + gamma * lam * (1.0 - done[t]) * acc
+        adv[t] = acc
+    return adv, adv + values
+
+
+def policy_loss(logp, old_logp, adv, clip: float):
+    """Clipped surrogate ``-E[min(rho A, clip(rho, 1 - eps, 1 + eps) A)]``; once the ratio has left
+    the trust region in the direction the advantage favours, its gradient is exactly zero.
+    Returns ``(loss, approx_kl, clip_fraction)``; the KL is the low-variance ``(rho - 1) - log rho``."""
+    log_ratio = logp - old_logp
+    ratio = log_ratio.exp()
+    loss = -torch.min(ratio * adv, ratio.clamp(1.0 - clip, 1.0 + clip) * adv).mean()
+    with torch.no_grad():
+        kl = ((ratio - 1.0) - log_ratio).mean()
+        frac = ((ratio - 1.0).abs() > clip).float().mean()
+    return loss, kl, frac
+
+
+def value_loss(v, old_v, returns, clip: float | None):
+    """``0.5 (V - R)^2``; clipped: the larger of that and the loss of ``old_v + clip(V - old_v)``."""
+    unclipped = (v - returns) ** 2
+    if clip is None:
+        return 0.5 * unclipped.mean()
+    v_clipped = old_v + (v - old_v).clamp(-clip, clip)
+    return 0.5 * torch.max(unclipped, (v_clipped - returns) ** 2).mean()
+
+
+def learning_rate(cfg: PPOConfig, iteration: int, total: int) -> float:
+    """LR for 0-based ``iteration`` of ``total``."""
+    frac = min(max(iteration / max(total, 1), 0.0), 1.0)
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
+    if cfg.lr_schedule == "linear":
+        return cfg.lr_min + (cfg.lr - cfg.lr_min) * (1.0 - frac)
+    if cfg.lr_schedule == "cosine":
+        return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1.0 + math.cos(math.pi * frac))
+    raise ValueError(f"unknown lr_schedule {cfg.lr_schedule!r}: use constant, linear or cosine")
+
+
+class Rollout:
+    """``(T, N, .)`` storage for one iteration. ``x`` is the normalised policy input."""
+
+    def __init__(self, horizon: int, num_envs: int, in_dim: int, action_dim: int):
+        T, N = horizon, num_envs
+        self.x = torch.zeros(T, N, in_dim)
+        self.actions = torch.zeros(T, N, action_dim)
+        self.logp = torch.zeros(T, N)
+        self.values = torch.zeros(T, N)
+        self.rewards = torch.zeros(T, N)
+        self.final_values = torch.zeros(T, N)  # V(final observation) of truncated steps
+        self.terminated = torch.zeros(T, N, dtype=torch.bool)
+        self.truncated = torch.zeros(T, N, dtype=torch.bool)
+
+    def next_values(self, last_value: torch.Tensor) -> torch.Tensor:
+        """``V`` of the state each step reached: the following step's value inside an episode,
+        the stored final value after a truncation, ``last_value`` after the last step."""
+        nv = torch.cat([self.values[1:], last_value[None]], 0)
+        return torch.where(self.truncated, self.final_values, nv)
+
+
+class PPO:
+    """The update half of PPO: ``update(rollout, last_value, iteration)`` does epochs x minibatches."""
+
+    def __init__(self, ac: ActorCritic, cfg: PPOConfig, total_iterations: int):
+        self.ac, self.cfg, self.total = ac, cfg, total_iterations
+        params = [p for n, p in ac.named_parameters() if not n.startswith("norm.")]
+        self.opt = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
+
+    def update(self, ro: Rollout, last_value: torch.Tensor, iteration: int,
+               generator: torch.Generator | None = None) -> dict[str, float]:
+        c, ac = self.cfg, self.ac
+        lr = learning_rate(c, iteration, self.total)
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        adv, ret = gae(ro.rewards, ro.values, ro.next_values(last_value), ro.terminated, ro.truncated, c.gamma, c.lam)
+        x, a, old_logp = ro.x.flatten(0, 1), ro.actions.flatten(0, 1), ro.logp.flatten(0, 1)
+        old_v, adv, ret = ro.values.flatten(), adv.flatten(), ret.flatten()
+        B = len(x)
+        mb = min(c.minibatch_size, B)
+        stats = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clip_frac": 0.0}
+        n = 0
+        for _ in range(c.epochs):
+            perm = torch.randperm(B, generator=generator)
+            for i in range(0, B - mb + 1, mb):  # a ragged last minibatch would be noisier: dropped
+                idx = perm[i:i + mb]
+                d = ac.policy.dist(x[idx])
+                logp = d.log_prob(a[idx]).sum(-1)
+                ent = d.entropy().sum(-1).mean()
+                A = adv[idx]
+                if c.norm_adv:
+                    A = (A - A.mean()) / (A.std() + 1e-8)
+                pl, kl, frac = policy_loss(logp, old_logp[idx], A, c.clip)
+                vl = value_loss(ac.value(x[idx]), old_v[idx], ret[idx], c.value_clip if c.clip_value else None)
+                loss = pl + c.value_coef * vl - c.entropy_coef * ent
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.opt.param_groups[0]["params"], c.max_grad_norm)
+                self.opt.step()
+                for k, v in zip(stats, (pl, vl, ent, kl, frac)):
+                    stats[k] += float(v.detach())
+                n += 1
+            if c.target_kl is not None and float(kl) > c.target_kl:
+                break
+        out = {k: v / max(n, 1) for k, v in stats.items()}
+        var = float(ret.var())
+        out["explained_var"] = float("nan") if var == 0 else 1.0 - float((ret - old_v).var()) / var
+        out["lr"] = lr
+        return out

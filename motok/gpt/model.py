@@ -1,0 +1,172 @@
+"""The T2M-GPT text-to-motion transformer (Zhang et al. 2023, Sec. 3.2, Eq. 4-5).
+
+A decoder-only causal transformer in the GPT-2 / nanoGPT layout (pre-LayerNorm blocks,
+GELU MLP, learned absolute positions, weight init N(0, 0.02)). The sequence is
+
+    position 0:        W_c e        the text embedding e projected to the model width
+    positions 1..L:    code tokens  S_1 .. S_L (codebook indices of the motion tokenizer)
+
+and the output at position i is the distribution of token i+1 (Eq. 4: p(S_i | c, S_<i)). The
+vocabulary is ``K`` codes, ``End = K`` and ``Pad = K + 1``. The head predicts only the ``K + 1``
+classes codes + End: Pad fills inputs after End and is never a target (its loss is ignored), so
+the model never learns to emit it.
+
+Residual-VQ tokenizers: the model predicts the first codebook only (one token per step); the
+motion is decoded from that codebook alone (``M = 1``), which quantizer dropout trained the
+tokenizer to do. docs/gpt.md discusses it.
+
+Sampling keeps a key/value cache (:class:`KVCache`) so each new token costs one position's
+worth of compute instead of re-running the whole prefix.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+@dataclass
+class GPTConfig:
+    """Sizes; the default is a small CPU model. ``recipes/gpt/paper.yaml`` has 18 x 1024 x 16."""
+    num_layers: int = 4
+    dim: int = 192
+    heads: int = 4
+    block_size: int = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
+    ff_mult: int = 4
+    dropout: float = 0.1
+
+
+class KVCache:
+    """Preallocated keys/values per layer, ``(B, H, block_size, head_dim)``; ``length`` positions filled."""
+
+    def __init__(self, cfg: GPTConfig, batch: int, device=None, dtype=torch.float32):
+        hd = cfg.dim // cfg.heads
+        shape = (batch, cfg.heads, cfg.block_size, hd)
+        self.k = [torch.zeros(shape, device=device, dtype=dtype) for _ in range(cfg.num_layers)]
+        self.v = [torch.zeros(shape, device=device, dtype=dtype) for _ in range(cfg.num_layers)]
+        self.length = 0
+
+    def append(self, layer: int, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        a, b = self.length, self.length + k.shape[2]
+        self.k[layer][:, :, a:b] = k
+        self.v[layer][:, :, a:b] = v
+        return self.k[layer][:, :, :b], self.v[layer][:, :, :b]
+
+
+class CausalSelfAttention(nn.Module):
+    def __init__(self, cfg: GPTConfig):
+        super().__init__()
+        if cfg.dim % cfg.heads:
+            raise ValueError(f"model.dim {cfg.dim} is not divisible by model.heads {cfg.heads}")
+        self.heads, self.dropout = cfg.heads, cfg.dropout
+        self.qkv = nn.Linear(cfg.dim, 3 * cfg.dim)
+        self.proj = nn.Linear(cfg.dim, cfg.dim)
+        self.resid_drop = nn.Dropout(cfg.dropout)
+
+    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0) -> torch.Tensor:
+        B, T, C = x.shape
+        q, k, v = self.qkv(x).view(B, T, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
+        past = cache.length if cache is not None else 0
+        if cache is not None:
+            k, v = cache.append(layer, k, v)
+        p = self.dropout if self.training else 0.0
+        if past == 0:
+            y = F.scaled_dot_product_attention(q, k, v, dropout_p=p, is_causal=T > 1)
+        elif T == 1:  # one new query sees every cached position: no mask needed
+            y = F.scaled_dot_product_attention(q, k, v, dropout_p=p)
+        else:
+            # T new queries after `past` cached ones: query i sees keys 0 .. past + i
+            mask = torch.ones(T, past + T, dtype=torch.bool, device=x.device).tril(past)
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+        return self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, T, C)))
+
+
+class Block(nn.Module):
+    def __init__(self, cfg: GPTConfig):
+        super().__init__()
+        self.ln1 = nn.LayerNorm(cfg.dim)
+        self.attn = CausalSelfAttention(cfg)
+        self.ln2 = nn.LayerNorm(cfg.dim)
+        self.mlp = nn.Sequential(nn.Linear(cfg.dim, cfg.ff_mult * cfg.dim), nn.GELU(),
+                                 nn.Linear(cfg.ff_mult * cfg.dim, cfg.dim), nn.Dropout(cfg.dropout))
+
+    def forward(self, x, cache=None, layer=0):
+        x = x + self.attn(self.ln1(x), cache, layer)
+        return x + self.mlp(self.ln2(x))
+
+
+class MotionGPT(nn.Module):
+    """``forward(text, idx) -> logits (B, 1 + L, K + 1)``: position i scores token i + 1 (Eq. 4)."""
+
+    def __init__(self, cfg: GPTConfig, codebook_size: int, text_dim: int):
+        super().__init__()
+        if cfg.block_size < 2:
+            raise ValueError("model.block_size must be >= 2 (the text and one code)")
+        self.cfg, self.codebook_size, self.text_dim = cfg, codebook_size, text_dim
+        self.end_id, self.pad_id = codebook_size, codebook_size + 1
+        self.tok_emb = nn.Embedding(codebook_size + 2, cfg.dim)
+        self.text_proj = nn.Linear(text_dim, cfg.dim)
+        self.pos_emb = nn.Embedding(cfg.block_size, cfg.dim)
+        self.drop = nn.Dropout(cfg.dropout)
+        self.blocks = nn.ModuleList([Block(cfg) for _ in range(cfg.num_layers)])
+        self.ln_f = nn.LayerNorm(cfg.dim)
+        self.head = nn.Linear(cfg.dim, codebook_size + 1, bias=False)
+        self.apply(self._init)
+        # GPT-2's scaling of residual output projections: keeps the residual stream's variance
+        # from growing with depth.
+        for name, p in self.named_parameters():
+            if name.endswith("attn.proj.weight") or name.endswith("mlp.2.weight"):
+                nn.init.normal_(p, 0.0, 0.02 / math.sqrt(2 * cfg.num_layers))
+
+    @staticmethod
+    def _init(m: nn.Module):
+        if isinstance(m, nn.Linear):
+            nn.init.normal_(m.weight, 0.0, 0.02)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.Embedding):
+            nn.init.normal_(m.weight, 0.0, 0.02)
+
+    @property
+    def max_codes(self) -> int:
+        """Longest code sequence the positions allow (the End token takes the step after it)."""
+        return self.cfg.block_size - 1
+
+    def new_cache(self, batch: int) -> KVCache:
+        p = next(self.parameters())
+        return KVCache(self.cfg, batch, p.device, p.dtype)
+
+    def forward(self, text: torch.Tensor | None, idx: torch.Tensor | None = None,
+                cache: KVCache | None = None) -> torch.Tensor:
+        """``text`` (B, text_dim) is position 0 and must come first (with or without a cache);
+        ``idx`` (B, L) are tokens at the following positions. With a cache, only the new
+        positions are computed and the logits returned are theirs."""
+        start = cache.length if cache is not None else 0
+        parts = []
+        if text is not None:
+            if start != 0:
+                raise ValueError("the text embedding is position 0: pass it on the first call only")
+            parts.append(self.text_proj(text)[:, None])
+        elif start == 0:
+            raise ValueError("the first call needs the text embedding")
+        if idx is not None and idx.shape[1]:
+            parts.append(self.tok_emb(idx))
+        x = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+        T = x.shape[1]
+        if start + T > self.cfg.block_size:
+            raise ValueError(f"sequence of {start + T} positions exceeds block_size {self.cfg.block_size}")
+        pos = torch.arange(start, start + T, device=x.device)
+        x = self.drop(x + self.pos_emb(pos))
+        for i, blk in enumerate(self.blocks):
+            x = blk(x, cache, i)
+        if cache is not None:
+            cache.length += T
+        return self.head(self.ln_f(x))
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

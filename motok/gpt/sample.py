@@ -1,0 +1,195 @@
+"""Text -> codes -> motion: sampling the T2M-GPT transformer (Sec. 3.2, inference).
+
+Generation starts from the text embedding alone (position 0) and draws one code per step from
+``p(S_i | c, S_<i)`` until End. Every (text, sample) pair is a row of one batch; a row that has
+emitted End is fed Pad and ignored while the others go on, and the loop stops when all have.
+
+- ``target_len`` (``--seconds``): End is masked before that many codes and forced at it.
+  Without it, End is masked only at step 0 (a motion has at least one token) and forced when
+  the positions run out (``block_size - 1`` codes).
+- Filtering: temperature, then top-k, then top-p (nucleus) on the logits; ``argmax`` picks the
+  best remaining code instead of sampling.
+- Randomness: sample ``j`` draws its Gumbel noise from its own generator seeded ``seed + j``
+  (Gumbel-max is an exact categorical draw), so a sample does not depend on which other texts
+  or how many samples share the batch, and ``--seed s`` sample ``j`` equals ``--seed s + j`` sample 0.
+- With the key/value cache each step runs one position; without it (benchmarks, tests) the
+  whole prefix is recomputed; both give the same logits.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from motok import progress as _progress
+from motok.artifacts import Provenance, command_line
+from motok.data.dataset import write_motion
+from motok.data.skeleton import Skeleton
+from motok.gpt.model import MotionGPT
+from motok.gpt.train import GPTError, load_gpt
+from motok.text.cache import TextEmbeddingCache
+
+
+def filter_logits(logits: torch.Tensor, temperature: float = 1.0, top_k: int | None = None,
+                  top_p: float | None = None) -> torch.Tensor:
+    """Temperature, top-k and nucleus filtering; removed entries become -inf (one always survives)."""
+    if temperature <= 0:
+        raise GPTError(f"temperature {temperature} must be > 0 (use --argmax for greedy decoding)")
+    x = logits / temperature
+    if top_k is not None and 0 < top_k < x.shape[-1]:
+        kth = torch.topk(x, top_k, dim=-1).values[..., -1:]
+        x = x.masked_fill(x < kth, float("-inf"))
+    if top_p is not None and top_p < 1.0:
+        srt, order = torch.sort(x, dim=-1, descending=True)
+        cum = torch.softmax(srt, dim=-1).cumsum(-1)
+        # Drop a token when the tokens ranked above it already hold top_p of the mass.
+        drop_sorted = (cum - torch.softmax(srt, dim=-1)) >= top_p
+        drop_sorted[..., 0] = False
+        x = x.masked_fill(torch.zeros_like(drop_sorted).scatter(-1, order, drop_sorted), float("-inf"))
+    return x
+
+
+@dataclass
+class Generation:
+    codes: list[torch.Tensor]  # per row, (L_b,) code indices without End
+    logits: list[torch.Tensor]  # per step, (B, K + 1) raw logits (filled when record_logits)
+    steps: int
+
+
+@torch.no_grad()
+def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor | None = None,
+             temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None,
+             argmax: bool = False, seeds: list[int] | None = None, use_cache: bool = True,
+             record_logits: bool = False) -> Generation:
+    """Autoregressive codes for each row of ``text`` (B, text_dim); see the module docstring."""
+    model.eval()
+    B, end, pad, cap = text.shape[0], model.end_id, model.pad_id, model.max_codes
+    dev = text.device
+    if target_len is not None:
+        target_len = torch.as_tensor(target_len, device=dev).clamp(1, cap)
+    gens = [torch.Generator().manual_seed(int(s)) for s in (seeds if seeds is not None else range(B))]
+    cache = model.new_cache(B) if use_cache else None
+    logits = model(text, None, cache)[:, -1]
+    seq = torch.empty(B, 0, dtype=torch.long, device=dev)
+    done = torch.zeros(B, dtype=torch.bool, device=dev)
+    lengths = torch.full((B,), cap, dtype=torch.long, device=dev)
+    recorded = []
+    for t in range(cap + 1):
+        if record_logits:
+            recorded.append(logits.float().cpu())
+        lg = logits.float().clone()
+        ban_end = torch.full((B,), t == 0, device=dev) if target_len is None else t < target_len
+        force_end = torch.full((B,), t >= cap, device=dev) if target_len is None else t >= target_len
+        lg[ban_end, end] = float("-inf")
+        lg = filter_logits(lg, 1.0 if argmax else temperature, top_k, top_p)
+        if not argmax:
+            u = torch.stack([torch.rand(lg.shape[-1], generator=g) for g in gens]).to(dev)
+            lg = lg - torch.log(-torch.log(u))  # + Gumbel noise: the argmax is a categorical draw
+        tok = lg.argmax(-1)
+        tok = torch.where(force_end, torch.full_like(tok, end), tok)
+        newly = (tok == end) & ~done
+        lengths[newly] = t
+        done |= newly
+        if bool(done.all()):
+            break
+        feed = torch.where(done, torch.full_like(tok, pad), tok)
+        seq = torch.cat([seq, feed[:, None]], dim=1)
+        logits = model(None, feed[:, None], cache)[:, -1] if use_cache else model(text, seq)[:, -1]
+    return Generation([seq[b, :lengths[b]].cpu() for b in range(B)], recorded, seq.shape[1] + 1)
+
+
+def _slug(text: str, n: int = 40) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:n] or "text"
+
+
+def _numbered(path: Path, names: list[str], k: int) -> Path:
+    return path if len(names) == 1 else path.with_name(f"{path.stem}_{names[k]}{path.suffix}")
+
+
+def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: int = 1, seed: int = 0,
+           temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
+           seconds: float | None = None, render: str | Path | None = None, bvh: str | Path | None = None,
+           tokenizer: str | Path | None = None, allow_mismatch: bool = False, batch_size: int = 64,
+           command: str | None = None) -> dict:
+    """Sample ``num_samples`` motions per text, decode them into one ``motion`` artifact ``out``,
+    and optionally render GIFs/MP4s and BVHs (one per clip, numbered when there are several)."""
+    from motok.tokenizer.tokens import features_to_clip
+    from motok.tokenizer.train import load_tokenizer
+
+    if not texts:
+        raise GPTError("no text given: use --text or --texts-file")
+    if num_samples < 1:
+        raise GPTError("-n must be >= 1")
+    t0 = time.perf_counter()
+    model, meta = load_gpt(run)
+    ex = meta["extra"]
+    tok_run = Path(tokenizer or ex["tokenizer"])
+    tok_model, tok_meta = load_tokenizer(tok_run)
+    if tok_meta["model_sha256"] != ex["tokenizer_sha256"] and not allow_mismatch:
+        raise GPTError(f"{tok_run} is not the tokenizer {run} was trained with (sha256 {tok_meta['model_sha256'][:12]} "
+                       f"vs {ex['tokenizer_sha256'][:12]}); pass --tokenizer or --allow-mismatch")
+    cache_path = Path(ex.get("text_cache", ""))
+    cache = TextEmbeddingCache(cache_path if cache_path.is_file() else None)
+    emb = torch.from_numpy(cache.embed(list(texts), ex["text_encoder"], write=False))
+    t_text = time.perf_counter()
+
+    rate, fps = int(ex["rate"]), float(tok_meta["extra"]["fps"])
+    target = None
+    if seconds is not None:
+        want = max(1, round(seconds * fps / rate))
+        if want > model.max_codes:
+            _progress.info(f"[yellow]note:[/] --seconds {seconds} needs {want} tokens; the model stops at "
+                           f"{model.max_codes} ({model.max_codes * rate / fps:.1f} s)")
+        target = min(want, model.max_codes)
+    rows = [(i, j) for i in range(len(texts)) for j in range(num_samples)]
+    codes: list[torch.Tensor] = []
+    for a in range(0, len(rows), batch_size):
+        chunk = rows[a:a + batch_size]
+        tl = None if target is None else torch.full((len(chunk),), target)
+        g = generate(model, emb[[i for i, _ in chunk]], target_len=tl, temperature=temperature, top_k=top_k,
+                     top_p=top_p, argmax=argmax, seeds=[seed + j for _, j in chunk])
+        codes += g.codes
+    t_gen = time.perf_counter()
+
+    tex = tok_meta["extra"]
+    skeleton = Skeleton.from_dict(tex["skeleton"], source=f"{tok_run}/bundle.json")
+    offsets = np.asarray(tex["offsets"], dtype=np.float32)
+    names = [f"{i:02d}-{_slug(texts[i])}-{j:02d}" for i, j in rows]
+    clips = []
+    for (i, j), name, c in zip(rows, names, codes):
+        idx = c.view(1, -1, 1)
+        feats = tok_model.decode_features(idx, 1)[0].numpy()
+        clips.append(features_to_clip(name, feats, skeleton, bool(tex["legacy"]), split="none",
+                                      labels={"text": texts[i], "sample": j, "seed": seed + j,
+                                              "codes": c.tolist()},
+                                      captions=[(texts[i], "", 0.0, 0.0)]))
+    cfg = {"gpt": str(run), "tokenizer": str(tok_run), "texts": list(texts), "num_samples": num_samples,
+           "seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p, "argmax": argmax,
+           "seconds": seconds, "target_tokens": target, "codebooks_decoded": 1}
+    prov = Provenance(command=command or command_line(), config=cfg,
+                      inputs={str(Path(run) / "model.safetensors"): meta["model_sha256"],
+                              str(tok_run / "model.safetensors"): tok_meta["model_sha256"]})
+    write_motion(out, "motion", prov, clips, skeleton, offsets, fps, bool(tex["legacy"]))
+    t_dec = time.perf_counter()
+
+    renders, bvhs = [], []
+    if render is not None:
+        from motok.render.stick import render_motion
+        feet = list(skeleton.feet_left) + list(skeleton.feet_right)
+        for k, c in enumerate(clips):
+            renders.append(str(render_motion(c.joints, skeleton.parents, _numbered(Path(render), names, k), fps=fps,
+                                             title=c.captions[0][0], contacts=c.features[:, -4:], foot_joints=feet)))
+    if bvh is not None:
+        from motok.data.export import export_bvh
+        for k, c in enumerate(clips):
+            bvhs.append(str(export_bvh(_numbered(Path(bvh), names, k), c.joints, skeleton, offsets, fps)))
+    return {"output": str(out), "clips": len(clips), "names": names,
+            "tokens": [len(c) for c in codes], "seconds": [round(len(c) * rate / fps, 2) for c in codes],
+            "render": renders, "bvh": bvhs, "time_load_s": round(t_text - t0, 2),
+            "time_generate_s": round(t_gen - t_text, 3), "time_decode_write_s": round(t_dec - t_gen, 3),
+            "time_total_s": round(time.perf_counter() - t0, 2)}

@@ -1,0 +1,383 @@
+"""Training the text-to-motion GPT (T2M-GPT Sec. 3.2, Eq. 5, and Sec. 4.1).
+
+Objective (Eq. 5): next-token cross-entropy over the codes of a motion followed by the End
+token, each sequence averaged over its own tokens and then over the batch (as the official
+code). Inputs after End are Pad and their targets are ignored.
+
+Corrupted sequences (Sec. 3.2, "a simple but effective strategy"): a fraction ``tau`` of the
+*input* codes is replaced by random codes while the targets stay clean, so the model learns to
+continue from its own imperfect samples. ``tau`` is fixed, or drawn per sequence from U[0, 1]
+(``tau_uniform``). A replacement is always a *different* code, so the measured fraction of
+changed inputs equals ``tau`` (the official code may draw the same code back, 1 / K of the time).
+
+The text encoder never runs inside the loop: every caption is embedded once through
+:mod:`motok.text.cache`. Long clips (more codes than the positions allow) are cropped at a
+random start; a crop that stops before the clip's end gets no End target.
+
+Runs unchanged under ``torchrun`` (the tokenizer's process-group helpers: DDP, global batch
+split over ranks, per-rank data generator, rank 0 writes); resuming restores model, optimizer,
+scheduler, global RNGs and every rank's data generator, so K + resume to 2K equals 2K straight.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+
+from motok import progress as _progress
+from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.checkpoint import MetricsLog, load_bundle, register_kind, rng_state, save_bundle, set_rng_state, sha256_state
+from motok.config import ConfigError, from_dict, load_config, to_dict
+from motok.gpt.model import GPTConfig, MotionGPT
+from motok.text.cache import TextEmbeddingCache
+from motok.tokenizer.tokens import TokenFile
+from motok.tokenizer.train import Dist, gather, init_distributed
+
+KIND = "gpt"
+register_kind(KIND, (1,))
+IGNORE = -100
+
+
+class GPTError(ValueError):
+    pass
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 1e-4
+    betas: list[float] = field(default_factory=lambda: [0.5, 0.99])
+    weight_decay: float = 1e-6
+    warmup: int = 0  # linear warm-up iterations
+    milestones: list[int] = field(default_factory=list)  # absolute iterations where lr *= gamma
+    gamma: float = 0.05
+    grad_clip: float = 0.0  # 0 = off
+
+
+@dataclass
+class TrainConfig:
+    model: GPTConfig = field(default_factory=GPTConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    text_encoder: str = "minilm"  # minilm | clip | bow
+    text_cache: str = ""  # text-embeddings artifact; "" = next to the tokens artifact
+    tau: float = 0.5  # fraction of input codes replaced by random codes
+    tau_uniform: bool = False  # draw tau ~ U[0, 1] per sequence instead
+    iterations: int = 2000
+    batch_size: int = 64  # global: split evenly over the ranks
+    split: str = "train"
+    val_split: str = "val"  # "" = no validation loss
+    seed: int = 123
+    log_every: int = 50
+    eval_every: int = 250
+    save_every: int = 500
+    device: str = "auto"  # auto | cpu | cuda
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+
+
+# --------------------------------------------------------------------------- data
+
+@dataclass
+class CodeData:
+    codes: torch.Tensor  # (S,) first-codebook codes of every clip, concatenated
+    starts: torch.Tensor  # (C,) per clip
+    lengths: torch.Tensor  # (C,)
+    pair_clip: torch.Tensor  # (P,) one (clip, caption) pair per row: the clip ...
+    pair_text: torch.Tensor  # (P,) ... and the row of its caption in `text`
+    text: torch.Tensor  # (U, text_dim) embeddings of the unique captions
+
+
+def default_cache_path(tokens: str | Path) -> Path:
+    tokens = Path(tokens)
+    return tokens.with_name(tokens.stem + ".text-embeddings.h5")
+
+
+def load_code_data(tokens: str | Path, split: str, encoder: str, cache: TextEmbeddingCache) -> CodeData:
+    """Codes of the first codebook of every clip in ``split`` with their caption embeddings."""
+    with TokenFile(tokens) as tf:
+        clips = [i for i, s in enumerate(tf.splits) if s == split]
+        if not clips:
+            raise GPTError(f"{tokens}: no clip in split {split!r} (splits: {sorted(set(tf.splits))})")
+        seqs = [torch.from_numpy(tf.indices(i)[:, 0].astype(np.int64)) for i in clips]
+        caps = [[c[0] for c in tf.captions(i)] for i in clips]
+    texts = sorted({t for cs in caps for t in cs})
+    row = {t: k for k, t in enumerate(texts)}
+    pairs = [(k, row[t]) for k, cs in enumerate(caps) for t in cs]
+    if not pairs:
+        raise GPTError(f"{tokens}: the {split} clips have no captions")
+    lengths = torch.tensor([len(s) for s in seqs])
+    starts = torch.cat([torch.zeros(1, dtype=torch.long), lengths.cumsum(0)[:-1]])
+    emb = torch.from_numpy(cache.embed(texts, encoder))
+    return CodeData(torch.cat(seqs), starts, lengths, torch.tensor([p[0] for p in pairs]),
+                    torch.tensor([p[1] for p in pairs]), emb)
+
+
+def corrupt(codes: torch.Tensor, valid: torch.Tensor, tau: torch.Tensor, codebook_size: int,
+            gen: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Replace each valid code with probability ``tau`` (per row, ``(B,)``) by a different random
+    code; returns the corrupted codes and the boolean mask of replaced positions."""
+    hit = (torch.rand(codes.shape, generator=gen) < tau[:, None]) & valid
+    shift = torch.randint(1, codebook_size, codes.shape, generator=gen) if codebook_size > 1 else 0
+    return torch.where(hit, (codes + shift) % codebook_size, codes), hit
+
+
+def make_batch(seqs: list[torch.Tensor], ends: list[bool], end_id: int, pad_id: int):
+    """Inputs ``(B, n)`` padded with Pad and targets ``(B, n + 1)``: codes, End (when the clip
+    ends there), ignore past it. Position i of the model's output scores target i."""
+    n = max(len(s) for s in seqs)
+    inp = torch.full((len(seqs), n), pad_id, dtype=torch.long)
+    tgt = torch.full((len(seqs), n + 1), IGNORE, dtype=torch.long)
+    for b, (s, e) in enumerate(zip(seqs, ends)):
+        inp[b, :len(s)] = s
+        tgt[b, :len(s)] = s
+        if e:
+            tgt[b, len(s)] = end_id
+    return inp, tgt
+
+
+class SequenceSampler:
+    """Random (clip, caption) pairs, cropped to ``max_codes``; own generator per rank."""
+
+    def __init__(self, data: CodeData, batch: int, max_codes: int, seed: int, rank: int):
+        self.data, self.batch, self.max_codes = data, batch, max_codes
+        self.gen = torch.Generator().manual_seed(seed * 1_000_003 + 7919 * (rank + 1))
+
+    def sample(self):
+        d, g = self.data, self.gen
+        pick = torch.randint(len(d.pair_clip), (self.batch,), generator=g)
+        clips = d.pair_clip[pick]
+        seqs, ends = [], []
+        for c in clips.tolist():
+            L, s0 = int(d.lengths[c]), int(d.starts[c])
+            off = int(torch.randint(L - self.max_codes + 1, (1,), generator=g)) if L > self.max_codes else 0
+            n = min(L, self.max_codes)
+            seqs.append(d.codes[s0 + off:s0 + off + n])
+            ends.append(off + n == L)
+        return d.text[d.pair_text[pick]], seqs, ends
+
+
+def gpt_loss(logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    """Eq. 5: cross-entropy per sequence (mean over its tokens), then mean over the batch."""
+    ce = F.cross_entropy(logits.transpose(1, 2), target, ignore_index=IGNORE, reduction="none")
+    valid = target != IGNORE
+    per_seq = (ce * valid).sum(1) / valid.sum(1).clamp(min=1)
+    acc = ((logits.argmax(-1) == target) & valid).sum() / valid.sum().clamp(min=1)
+    return per_seq.mean(), {"acc": acc.detach()}
+
+
+# --------------------------------------------------------------------------- config & bundle
+
+def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: bool = False) -> TrainConfig:
+    """Recipe + overrides; on resume the saved config is the base and the model cannot change."""
+    if not resume:
+        return load_config(TrainConfig, recipe, overrides)
+    meta, _, _ = load_bundle(run, KIND)
+    saved = meta["config"]
+    cfg = load_config(TrainConfig, None, overrides, base=saved)
+    if recipe is not None and to_dict(load_config(TrainConfig, recipe, overrides))["model"] != saved["model"]:
+        raise ConfigError(f"--resume: the recipe changes the model of the saved run {run}")
+    for k in ("model", "batch_size", "seed", "text_encoder"):
+        if to_dict(cfg)[k] != saved[k]:
+            raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
+    return cfg
+
+
+def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> MotionGPT:
+    cfg = cfg if isinstance(cfg, TrainConfig) else from_dict(TrainConfig, cfg)
+    return MotionGPT(cfg.model, codebook_size, text_dim)
+
+
+def load_gpt(run: str | Path, device: str | torch.device = "cpu") -> tuple[MotionGPT, dict]:
+    """A trained GPT in eval mode and its bundle metadata."""
+    meta, state, _ = load_bundle(run, KIND)
+    ex = meta["extra"]
+    model = build_model(meta["config"], int(ex["codebook_size"]), int(ex["text_dim"]))
+    model.load_state_dict(state)
+    return model.to(device).eval(), meta
+
+
+def lr_factor(it: int, cfg: OptimConfig) -> float:
+    if it < cfg.warmup:
+        return (it + 1) / (cfg.warmup + 1)
+    return cfg.gamma ** sum(it >= m for m in cfg.milestones)
+
+
+@torch.no_grad()
+def evaluate_loss(model: MotionGPT, data: CodeData, device, batch: int = 64) -> dict:
+    """Teacher-forced loss and accuracy, no corruption: the first caption of every clip, its first codes."""
+    was = model.training
+    model.eval()
+    first = {}
+    for k, c in enumerate(data.pair_clip.tolist()):
+        first.setdefault(c, k)
+    rows = list(first.values())
+    tot = {"loss": 0.0, "acc": 0.0}
+    for a in range(0, len(rows), batch):
+        pick = torch.tensor(rows[a:a + batch])
+        seqs, ends = [], []
+        for c in data.pair_clip[pick].tolist():
+            n = min(int(data.lengths[c]), model.max_codes)
+            seqs.append(data.codes[int(data.starts[c]):int(data.starts[c]) + n])
+            ends.append(n == int(data.lengths[c]))
+        inp, tgt = make_batch(seqs, ends, model.end_id, model.pad_id)
+        loss, parts = gpt_loss(model(data.text[data.pair_text[pick]].to(device), inp.to(device)), tgt.to(device))
+        tot["loss"] += float(loss) * len(pick)
+        tot["acc"] += float(parts["acc"]) * len(pick)
+    model.train(was)
+    return {k: v / len(rows) for k, v in tot.items()}
+
+
+# --------------------------------------------------------------------------- loop
+
+def train(cfg: TrainConfig, tokens: str | Path, run: str | Path, resume: bool = False,
+          stop_at: int | None = None, command: str | None = None) -> dict:
+    """Train (or resume) a GPT on a ``tokens`` artifact into the bundle folder ``run``.
+
+    ``stop_at`` ends early at that iteration with a checkpoint, as an interruption would."""
+    d = init_distributed()
+    try:
+        return _train(cfg, Path(tokens), Path(run), resume, stop_at, command, d)
+    finally:
+        if d.owned:
+            dist.barrier()
+            dist.destroy_process_group()
+
+
+def _pick_device(name: str, d: Dist) -> torch.device:
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise GPTError("device=cuda but no GPU is available")
+    return torch.device("cuda", d.local_rank)
+
+
+def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, d: Dist) -> dict:
+    if cfg.batch_size % d.world:
+        raise GPTError(f"batch_size {cfg.batch_size} does not split over {d.world} ranks")
+    if not (0.0 <= cfg.tau <= 1.0):
+        raise ConfigError(f"tau {cfg.tau} must be in [0, 1]")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    device = _pick_device(cfg.device, d)
+    inputs = hash_inputs([tokens])
+    cache_path = Path(cfg.text_cache) if cfg.text_cache else default_cache_path(tokens)
+    # Rank 0 fills the cache; the others wait and then find every caption in it.
+    if d.main:
+        data, val = _load(tokens, cfg, cache_path)
+    if d.world > 1:
+        dist.barrier()
+    if not d.main:
+        data, val = _load(tokens, cfg, cache_path, write=False)
+    with TokenFile(tokens) as tf:
+        K, tok_meta = tf.codebook_size, dict(tf.h5.attrs)
+    text_dim = int(data.text.shape[1])
+
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    model = build_model(cfg, K, text_dim).to(device).train()
+    decay = [p for n, p in model.named_parameters() if p.dim() >= 2]
+    no_decay = [p for n, p in model.named_parameters() if p.dim() < 2]
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.optim.weight_decay},
+                             {"params": no_decay, "weight_decay": 0.0}], lr=cfg.optim.lr, betas=tuple(cfg.optim.betas))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: lr_factor(i, cfg.optim))
+    sampler = SequenceSampler(data, cfg.batch_size // d.world, model.max_codes, cfg.seed, d.rank)
+
+    start = 0
+    if resume:
+        meta, state, ts = load_bundle(run, KIND, with_train_state=True)
+        if meta["extra"].get("tokens_sha256") != inputs[str(tokens)]:
+            raise GPTError(f"--resume: {tokens} is not the tokens artifact {run} was trained on (hash differs)")
+        if int(ts["world_size"]) != d.world:
+            raise GPTError(f"--resume: saved with {int(ts['world_size'])} ranks, now {d.world}")
+        model.load_state_dict(state)
+        opt.load_state_dict(ts["optimizer"])
+        sched.load_state_dict(ts["scheduler"])
+        set_rng_state(ts["rng"])
+        sampler.gen.set_state(ts["data_rng"][d.rank].clone())
+        start = int(ts["iteration"])
+    net = model
+    if d.world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[d.local_rank] if device.type == "cuda" else None)
+
+    log = MetricsLog(run / "metrics.jsonl", resume_from=start if resume else None) if d.main else None
+    end = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
+    extra = {"tokens": str(tokens), "tokens_sha256": inputs[str(tokens)], "tokenizer": str(tok_meta["tokenizer"]),
+             "tokenizer_sha256": str(tok_meta["tokenizer_sha256"]), "codebook_size": K, "codebook": 0,
+             "tokenizer_codebooks": int(tok_meta["num_codebooks"]), "rate": int(tok_meta["rate"]),
+             "fps": float(tok_meta["fps"]), "text_encoder": cfg.text_encoder, "text_dim": text_dim,
+             "text_cache": str(cache_path), "train_pairs": len(data.pair_clip)}
+    acc, n_acc, ntok, t_log, last = {}, 0, 0, time.perf_counter(), {}
+
+    def save(it: int):
+        states = gather(sampler.gen.get_state(), d)
+        hashes = gather(sha256_state(model.state_dict()), d)
+        if not d.main:
+            return
+        ts = {"iteration": it, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+              "rng": rng_state(), "data_rng": torch.stack(states), "world_size": d.world}
+        prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
+        save_bundle(run, KIND, model.state_dict(), to_dict(cfg), prov, train_state=ts,
+                    extra={**extra, "iteration": it, "world_size": d.world, "rank_state_sha256": hashes,
+                           "last_metrics": last})
+
+    with _progress.make_progress("it", extra="loss {task.fields[loss]:.3f} acc {task.fields[acc]:.2f}") as bar:
+        task = bar.add_task("gpt", total=end, completed=start, loss=float("nan"), acc=float("nan"))
+        if not d.main:
+            bar.stop()
+        for it in range(start + 1, end + 1):
+            text, seqs, ends = sampler.sample()
+            inp, tgt = make_batch(seqs, ends, model.end_id, model.pad_id)
+            if cfg.tau_uniform:
+                tau = torch.rand(len(seqs), generator=sampler.gen)
+            else:
+                tau = torch.full((len(seqs),), cfg.tau)
+            inp, hit = corrupt(inp, inp != model.pad_id, tau, K, sampler.gen)
+            loss, parts = gpt_loss(net(text.to(device), inp.to(device)), tgt.to(device))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.optim.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
+            opt.step()
+            sched.step()
+            lv = loss.item()
+            if not math.isfinite(lv):
+                raise GPTError(f"loss is {lv} at iteration {it}; lower optim.lr")
+            valid = int((inp != model.pad_id).sum())
+            for k, v in {"loss": lv, "acc": float(parts["acc"]), "tau_measured": float(hit.sum()) / max(valid, 1)}.items():
+                acc[k] = acc.get(k, 0.0) + v
+            n_acc += 1
+            ntok += valid + len(seqs)
+            if d.main:
+                bar.update(task, advance=1, loss=lv, acc=float(parts["acc"]))
+            if it % cfg.log_every == 0 or it == end:
+                dt = time.perf_counter() - t_log
+                last = {"iteration": it, **{k: v / n_acc for k, v in acc.items()}, "lr": sched.get_last_lr()[0],
+                        "it_s": n_acc / dt, "tokens_s": ntok * d.world / dt}
+                if val is not None and d.main and (it % cfg.eval_every == 0 or it == end):
+                    last.update({f"val_{k}": v for k, v in evaluate_loss(model, val, device).items()})
+                if log is not None:
+                    log.log(last)
+                acc, n_acc, ntok, t_log = {}, 0, 0, time.perf_counter()
+            if it % cfg.save_every == 0 or it == end:
+                save(it)
+    return {"run": str(run), "iteration": end, "iterations": cfg.iterations, "world_size": d.world,
+            **{k: last.get(k) for k in ("loss", "acc", "val_loss", "val_acc", "it_s", "tokens_s")}}
+
+
+def _load(tokens: Path, cfg: TrainConfig, cache_path: Path, write: bool = True):
+    cache = TextEmbeddingCache(cache_path)
+    if not write:
+        cache.path = None  # read-only on non-zero ranks
+    data = load_code_data(tokens, cfg.split, cfg.text_encoder, cache)
+    val = None
+    if cfg.val_split:
+        try:
+            val = load_code_data(tokens, cfg.val_split, cfg.text_encoder, cache)
+        except GPTError:
+            val = None  # no such split (small sets): train without a validation loss
+    return data, val

@@ -1,0 +1,74 @@
+"""Text encoders (one interface) and the caption-embedding cache."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import motok.text.cache as cache_mod
+from motok.artifacts import open_artifact
+from motok.text.cache import TextEmbeddingCache, embed_texts
+from motok.text.encoders import TextEncoderError, encode, get_encoder
+
+SIMILAR = ("a person walks forward", "someone walks straight ahead")  # paraphrases
+OVERLAP = ("a person walks forward", "a person walks forward slowly")  # shared words: all bow can see
+UNRELATED = "the stock market fell sharply today"
+
+
+def _cos(a, b):
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+@pytest.mark.parametrize("name,dim,pair", [("minilm", 384, SIMILAR), ("bow", 256, OVERLAP)])
+def test_encoder_is_deterministic_and_semantic(name, dim, pair):
+    texts = [*pair, UNRELATED]
+    a = encode(texts, name)
+    b = get_encoder(name).encode(texts)
+    assert a.shape == (3, dim) and a.dtype == np.float32 and np.isfinite(a).all()
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)
+    assert _cos(a[0], a[1]) > _cos(a[0], a[2]) + 0.2
+    assert _cos(a[0], a[1]) > _cos(a[1], a[2]) + 0.2
+    single = encode([texts[0]], name)  # a caption's embedding does not depend on its batch
+    np.testing.assert_allclose(single[0], a[0], atol=1e-5)
+
+
+def test_minilm_paraphrases_beat_shared_words():
+    """What MiniLM buys over bag-of-words: meaning, not word overlap."""
+    e = encode(["a person walks forward", "someone strolls ahead", "a person throws a ball forward"], "minilm")
+    assert _cos(e[0], e[1]) > _cos(e[0], e[2])
+
+
+def test_clip_without_weights_is_a_clear_error(monkeypatch, tmp_path):
+    monkeypatch.setenv("MOTOK_CLIP_WEIGHTS", str(tmp_path / "missing-ViT-B-32.pt"))
+    with pytest.raises(TextEncoderError, match="MOTOK_CLIP_WEIGHTS|never downloads"):
+        encode(["a person walks"], "clip")
+    with pytest.raises(TextEncoderError, match="unknown text encoder"):
+        get_encoder("gpt5")
+
+
+def test_cache_hits_and_persists(tmp_path, monkeypatch):
+    path = tmp_path / "emb.h5"
+    c = TextEmbeddingCache(path)
+    first = c.embed([SIMILAR[0], SIMILAR[1], SIMILAR[0]], "bow")
+    assert (c.misses, c.hits) == (2, 1) and first.shape == (3, 256)
+    with open_artifact(path, "text-embeddings") as f:
+        assert f["encoders/bow/embedding"].shape == (2, 256)
+
+    calls = []
+    real = cache_mod.get_encoder
+
+    def counting(name):
+        calls.append(name)
+        return real(name)
+    monkeypatch.setattr(cache_mod, "get_encoder", counting)
+    again = TextEmbeddingCache(path)
+    second = again.embed([SIMILAR[1], SIMILAR[0], SIMILAR[0]], "bow")
+    assert (again.misses, again.hits) == (0, 3) and calls == []  # every lookup a hit: no encoder
+    np.testing.assert_array_equal(second, first[[1, 0, 2]])
+    # Keys are (encoder, caption): the same caption under another encoder is a miss.
+    more = embed_texts([SIMILAR[0], UNRELATED], "minilm", path)
+    assert more.shape == (2, 384) and calls == ["minilm"]
+    with open_artifact(path, "text-embeddings") as f:
+        assert set(f["encoders"]) == {"bow", "minilm"} and f["encoders/bow/text"].shape == (2,)
+    np.testing.assert_allclose(more, encode([SIMILAR[0], UNRELATED], "minilm"), atol=1e-6)

@@ -17,13 +17,7 @@ TINY_EVAL = ["text_encoder=bow", "width=32", "embed_dim=32", "layers=1", "heads=
              "iterations=60", "log_every=10", "max_frames=64", "lr=0.002", "warmup=5", "threads=1"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models on a shared 2-core machine: a second intra-op thread only spins."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="session")

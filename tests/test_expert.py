@@ -18,13 +18,7 @@ from motok.sim.humanoid import build_humanoid, load_humanoid
 from motok.sim.reference import ReferenceLibrary, body_states, load_library
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Small networks gain nothing from a second thread on a loaded 2-core machine; they lose a lot."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,8 @@ def one_thread():
 
 def tiny(block_size: int = 12, dropout: float = 0.0, layers: int = 2, dim: int = 32) -> MotionGPT:
     torch.manual_seed(0)
-    return MotionGPT(GPTConfig(num_layers=layers, dim=dim, heads=4, block_size=block_size, dropout=dropout), K, TEXT_DIM)
+    cfg = GPTConfig(num_layers=layers, dim=dim, heads=4, block_size=block_size, dropout=dropout)
+    return MotionGPT(cfg, K, TEXT_DIM)
 
 
 # --------------------------------------------------------------------------- model (synthetic tokens)
@@ -213,7 +214,8 @@ def test_sample_cli_writes_a_valid_motion(tiny_tokens, tmp_path):
     assert r2.exit_code == 0, r2.output
     with MotionFile(tmp_path / "t.h5", "motion") as mf:
         assert [mf.clip(i).labels["codes"] for i in range(4)] == codes_a  # seeds reproduce
-    bad = runner.invoke(app, ["gpt", "sample", "--gpt", str(tmp_path / "nope"), "--text", "x", "-o", str(tmp_path / "x.h5")])
+    bad = runner.invoke(app, ["gpt", "sample", "--gpt", str(tmp_path / "nope"), "--text", "x",
+                              "-o", str(tmp_path / "x.h5")])
     assert bad.exit_code == 2 and "bundle" in bad.output
 
 

@@ -13,13 +13,7 @@ from motok.control.networks import EncoderDecoderPolicy, RunningNorm
 from motok.control.ppo import PPOConfig, Rollout, gae, learning_rate, policy_loss, value_loss
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Small networks gain nothing from a second thread on a loaded 2-core machine; they lose a lot."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_gae_three_steps_with_termination_and_truncation():

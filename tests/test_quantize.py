@@ -20,13 +20,7 @@ from motok.tokenizer.quantize import QuantizerConfig, build_quantizer
 CODEBOOK_KINDS = ["vq", "ema", "reset", "ema_reset", "rvq"]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # These tensors are tiny; on a busy 2-core machine intra-op threads only add spin-waiting.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make(kind, K=16, D=8, N=None, seed=0, **kw):

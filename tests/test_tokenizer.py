@@ -179,7 +179,7 @@ def test_torchrun_two_ranks_stay_identical(small_dataset, tmp_path, kind):
            "--data", str(small_dataset), "-o", str(run), *sets]
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1", "OMP_NUM_THREADS": "1"}
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.returncode == 0, r.stderr[:3000] + "\n...\n" + r.stderr[-3000:]
     meta, state, ts = load_bundle(run, "tokenizer", with_train_state=True)
     hashes = meta["extra"]["rank_state_sha256"]
     # weights, EMA statistics and codebooks: one hash over the whole state per rank

@@ -83,9 +83,9 @@ def sample(
     argmax: bool = typer.Option(False, "--argmax", help="Greedy: the most likely code at each step."),
     seconds: Optional[float] = typer.Option(None, "--seconds", help="Target length: End masked before, forced at."),
     out: Path = typer.Option(..., "-o", "--out", help="Output motion artifact (.h5)."),
-    render: Optional[Path] = typer.Option(None, "--render", help="Also render OUT.gif/.mp4/.png (numbered if several)."),
-    bvh: Optional[Path] = typer.Option(None, "--bvh", help="Also export OUT.bvh (numbered if several)."),
-    tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", help="Tokenizer run (default: the one trained with)."),
+    render: Optional[Path] = typer.Option(None, "--render", help="Also render OUT.gif/.mp4/.png (one per clip)."),
+    bvh: Optional[Path] = typer.Option(None, "--bvh", help="Also export OUT.bvh (one per clip)."),
+    tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", help="Tokenizer run (default: the GPT's own)."),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode with another tokenizer."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ):

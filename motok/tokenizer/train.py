@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import math
+import gc
 import os
 import time
 from dataclasses import dataclass, field
@@ -273,7 +274,9 @@ def train(cfg: TrainConfig, data_path: str | Path, run: str | Path, resume: bool
         return _train(cfg, data_path, run, resume, stop_at, command, d)
     finally:
         if d.owned:
-            # Leaving while a peer is still in a collective aborts gloo's threads.
+            # Leaving while a peer is still in a collective aborts gloo's threads, and so does a
+            # DDP reducer that outlives its process group: collect it before destroying the group.
+            gc.collect()
             dist.barrier()
             dist.destroy_process_group()
 

@@ -19,13 +19,7 @@ from motok.gpt.train import IGNORE, TrainConfig, corrupt, gpt_loss, make_batch, 
 K, TEXT_DIM = 16, 8
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models on a shared 2-core machine: a second intra-op thread only spins (10x slower)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def tiny(block_size: int = 12, dropout: float = 0.0, layers: int = 2, dim: int = 32) -> MotionGPT:

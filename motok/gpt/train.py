@@ -38,7 +38,7 @@ from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.gpt.model import GPTConfig, MotionGPT
 from motok.text.cache import TextEmbeddingCache
 from motok.tokenizer.tokens import TokenFile
-from motok.tokenizer.train import Dist, gather, init_distributed
+from motok.tokenizer.train import Dist, gather, init_distributed, shutdown_distributed
 
 KIND = "gpt"
 register_kind(KIND, (1,))
@@ -243,9 +243,7 @@ def train(cfg: TrainConfig, tokens: str | Path, run: str | Path, resume: bool = 
     try:
         return _train(cfg, Path(tokens), Path(run), resume, stop_at, command, d)
     finally:
-        if d.owned:
-            dist.barrier()
-            dist.destroy_process_group()
+        shutdown_distributed(d)
 
 
 def _pick_device(name: str, d: Dist) -> torch.device:

@@ -175,6 +175,16 @@ def init_distributed() -> Dist:
     return Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")), owned)
 
 
+def shutdown_distributed(d: Dist) -> None:
+    """Leave the process group we joined. Leaving while a peer is still in a collective aborts
+    gloo's threads, and so does a DDP reducer that outlives its process group (seen as
+    'terminate called without an active exception' at exit): collect it, then barrier."""
+    if d.owned:
+        gc.collect()
+        dist.barrier()
+        dist.destroy_process_group()
+
+
 def pick_device(name: str, d: Dist) -> torch.device:
     if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
         return torch.device("cpu")
@@ -273,12 +283,7 @@ def train(cfg: TrainConfig, data_path: str | Path, run: str | Path, resume: bool
     try:
         return _train(cfg, data_path, run, resume, stop_at, command, d)
     finally:
-        if d.owned:
-            # Leaving while a peer is still in a collective aborts gloo's threads, and so does a
-            # DDP reducer that outlives its process group: collect it before destroying the group.
-            gc.collect()
-            dist.barrier()
-            dist.destroy_process_group()
+        shutdown_distributed(d)
 
 
 def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:

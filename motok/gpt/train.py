@@ -32,13 +32,13 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from motok import progress as _progress
-from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind, rng_state, save_bundle, set_rng_state, sha256_state
+from motok.artifacts import hash_inputs
+from motok.checkpoint import MetricsLog, load_bundle, register_kind, set_rng_state
 from motok.config import ConfigError, from_dict, load_config, to_dict
+from motok.distributed import Dist, init_distributed, pick_device, save_checkpoint, shutdown_distributed
 from motok.gpt.model import GPTConfig, MotionGPT
 from motok.text.cache import TextEmbeddingCache
 from motok.tokenizer.tokens import TokenFile
-from motok.tokenizer.train import Dist, gather, init_distributed, shutdown_distributed
 
 KIND = "gpt"
 register_kind(KIND, (1,))
@@ -246,14 +246,6 @@ def train(cfg: TrainConfig, tokens: str | Path, run: str | Path, resume: bool = 
         shutdown_distributed(d)
 
 
-def _pick_device(name: str, d: Dist) -> torch.device:
-    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
-        return torch.device("cpu")
-    if not torch.cuda.is_available():
-        raise GPTError("device=cuda but no GPU is available")
-    return torch.device("cuda", d.local_rank)
-
-
 def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, d: Dist) -> dict:
     if cfg.batch_size % d.world:
         raise GPTError(f"batch_size {cfg.batch_size} does not split over {d.world} ranks")
@@ -261,7 +253,7 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
         raise ConfigError(f"tau {cfg.tau} must be in [0, 1]")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    device = _pick_device(cfg.device, d)
+    device = pick_device(cfg.device, d, GPTError)
     inputs = hash_inputs([tokens])
     cache_path = Path(cfg.text_cache) if cfg.text_cache else default_cache_path(tokens)
     # Rank 0 fills the cache; the others wait and then find every caption in it.
@@ -313,16 +305,7 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
     acc, n_acc, ntok, t_log, last = {}, 0, 0, time.perf_counter(), {}
 
     def save(it: int):
-        states = gather(sampler.gen.get_state(), d)
-        hashes = gather(sha256_state(model.state_dict()), d)
-        if not d.main:
-            return
-        ts = {"iteration": it, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-              "rng": rng_state(), "data_rng": torch.stack(states), "world_size": d.world}
-        prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
-        save_bundle(run, KIND, model.state_dict(), to_dict(cfg), prov, train_state=ts,
-                    extra={**extra, "iteration": it, "world_size": d.world, "rank_state_sha256": hashes,
-                           "last_metrics": last})
+        save_checkpoint(run, KIND, model, opt, sched, sampler.gen, d, cfg, inputs, extra, it, last, command)
 
     with _progress.make_progress("it", extra="loss {task.fields[loss]:.3f} acc {task.fields[acc]:.2f}") as bar:
         task = bar.add_task("gpt", total=end, completed=start, loss=float("nan"), acc=float("nan"))

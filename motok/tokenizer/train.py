@@ -15,21 +15,19 @@ from __future__ import annotations
 
 import copy
 import math
-import gc
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.distributed as dist
 
 from motok import progress as _progress
-from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind, rng_state, save_bundle, set_rng_state, sha256_state
+from motok.artifacts import hash_inputs
+from motok.checkpoint import MetricsLog, load_bundle, register_kind, set_rng_state
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
+from motok.distributed import Dist, init_distributed, pick_device, save_checkpoint, shutdown_distributed
 from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss  # noqa: F401 (re-exported)
 from motok.tokenizer.quantize import QuantizerConfig
 
@@ -151,59 +149,9 @@ def make_optimizer(model: torch.nn.Module, cfg: OptimConfig):
 
 # --------------------------------------------------------------------------- distributed
 
-@dataclass
-class Dist:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-    owned: bool = False  # we initialized the process group, so we tear it down
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def init_distributed() -> Dist:
-    """Join the process group torchrun describes in the environment (a no-op when alone)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return Dist()
-    owned = False
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-        owned = True
-    return Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")), owned)
-
-
-def shutdown_distributed(d: Dist) -> None:
-    """Leave the process group we joined. Leaving while a peer is still in a collective aborts
-    gloo's threads, and so does a DDP reducer that outlives its process group (seen as
-    'terminate called without an active exception' at exit): collect it, then barrier."""
-    if d.owned:
-        gc.collect()
-        dist.barrier()
-        dist.destroy_process_group()
-
-
-def pick_device(name: str, d: Dist) -> torch.device:
-    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
-        return torch.device("cpu")
-    if not torch.cuda.is_available():
-        raise TokenizerError("device=cuda but no GPU is available")
-    return torch.device("cuda", d.local_rank)
-
-
 def _ddp_args() -> set[str]:
     import inspect
     return set(inspect.signature(torch.nn.parallel.DistributedDataParallel.__init__).parameters)
-
-
-def gather(obj, d: Dist) -> list:
-    if d.world == 1:
-        return [obj]
-    out = [None] * d.world
-    dist.all_gather_object(out, obj)
-    return out
 
 
 # --------------------------------------------------------------------------- config & bundle
@@ -294,7 +242,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
         raise FileNotFoundError(f"{data_path}: no such file")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    device = pick_device(cfg.device, d)
+    device = pick_device(cfg.device, d, TokenizerError)
     inputs = hash_inputs([data_path])
     data_hash = inputs[str(data_path)]
     saved = load_bundle(run, KIND, with_train_state=True) if resume else None
@@ -347,18 +295,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
                 "codebook_size": int(model.quantizer.codebook_size), "code_dim": int(model.quantizer.dim)}
 
     def save(it: int):
-        states = gather(sampler.gen.get_state(), d)
-        hashes = gather(sha256_state(model.state_dict()), d)
-        if not d.main:
-            return
-        if len(set(hashes)) > 1:
-            _progress.info(f"[bold red]warning:[/] ranks diverged at iteration {it}: {hashes}")
-        ts = {"iteration": it, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-              "rng": rng_state(), "data_rng": torch.stack(states), "world_size": d.world}
-        prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
-        save_bundle(run, KIND, model.state_dict(), to_dict(cfg), prov, train_state=ts,
-                    extra={**dev_meta, "iteration": it, "world_size": d.world, "rank_state_sha256": hashes,
-                           "last_metrics": last})
+        save_checkpoint(run, KIND, model, opt, sched, sampler.gen, d, cfg, inputs, dev_meta, it, last, command)
 
     with _progress.make_progress("it", extra="loss {task.fields[loss]:.4f} usage {task.fields[usage]:.2f}") as bar:
         task = bar.add_task("tokenizer", total=end, completed=start, loss=float("nan"), usage=float("nan"))

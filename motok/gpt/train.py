@@ -36,6 +36,7 @@ from motok.artifacts import hash_inputs
 from motok.checkpoint import MetricsLog, load_bundle, register_kind, set_rng_state
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.distributed import Dist, init_distributed, pick_device, save_checkpoint, shutdown_distributed
+from motok.optim import OptimConfig, lr_factor
 from motok.gpt.model import GPTConfig, MotionGPT
 from motok.text.cache import TextEmbeddingCache
 from motok.tokenizer.tokens import TokenFile
@@ -50,20 +51,11 @@ class GPTError(ValueError):
 
 
 @dataclass
-class OptimConfig:
-    lr: float = 1e-4
-    betas: list[float] = field(default_factory=lambda: [0.5, 0.99])
-    weight_decay: float = 1e-6
-    warmup: int = 0  # linear warm-up iterations
-    milestones: list[int] = field(default_factory=list)  # absolute iterations where lr *= gamma
-    gamma: float = 0.05
-    grad_clip: float = 0.0  # 0 = off
-
-
-@dataclass
 class TrainConfig:
     model: GPTConfig = field(default_factory=GPTConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
+    # The paper's GPT optimizer: AdamW (0.5, 0.99), lr 1e-4, no warm-up (T2M-GPT Sec. 4.1).
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=[0.5, 0.99], weight_decay=1e-6,
+                                                                   warmup=0))
     text_encoder: str = "minilm"  # minilm | clip | bow
     text_cache: str = ""  # text-embeddings artifact; "" = next to the tokens artifact
     tau: float = 0.5  # fraction of input codes replaced by random codes
@@ -199,12 +191,6 @@ def load_gpt(run: str | Path, device: str | torch.device = "cpu") -> tuple[Motio
     model = build_model(meta["config"], int(ex["codebook_size"]), int(ex["text_dim"]))
     model.load_state_dict(state)
     return model.to(device).eval(), meta
-
-
-def lr_factor(it: int, cfg: OptimConfig) -> float:
-    if it < cfg.warmup:
-        return (it + 1) / (cfg.warmup + 1)
-    return cfg.gamma ** sum(it >= m for m in cfg.milestones)
 
 
 @torch.no_grad()

@@ -28,22 +28,12 @@ from motok.checkpoint import MetricsLog, load_bundle, register_kind, set_rng_sta
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
 from motok.distributed import Dist, init_distributed, pick_device, save_checkpoint, shutdown_distributed
+from motok.optim import OptimConfig, lr_factor  # noqa: F401 (lr_factor re-exported)
 from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss  # noqa: F401 (re-exported)
 from motok.tokenizer.quantize import QuantizerConfig
 
 KIND = "tokenizer"
 register_kind(KIND, (1,))
-
-
-@dataclass
-class OptimConfig:
-    lr: float = 2e-4
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
-    weight_decay: float = 0.0
-    warmup: int = 200  # linear warm-up iterations
-    milestones: list[int] = field(default_factory=list)  # absolute iterations where lr *= gamma
-    gamma: float = 0.05
-    grad_clip: float = 0.0  # 0 = off
 
 
 @dataclass
@@ -132,13 +122,6 @@ class WindowSampler:
 
 
 # --------------------------------------------------------------------------- optimizer
-
-def lr_factor(it: int, cfg: OptimConfig) -> float:
-    """Linear warm-up over ``warmup`` iterations, then x gamma at each milestone (Sec. 4.1)."""
-    if it < cfg.warmup:
-        return (it + 1) / (cfg.warmup + 1)
-    return cfg.gamma ** sum(it >= m for m in cfg.milestones)
-
 
 def make_optimizer(model: torch.nn.Module, cfg: OptimConfig):
     params = [p for p in model.parameters() if p.requires_grad]

@@ -1,0 +1,24 @@
+"""The optimizer settings and learning-rate schedule every trainer shares: AdamW with a
+linear warm-up, then a step decay by ``gamma`` at each milestone (T2M-GPT Sec. 4.1)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 2e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
+    weight_decay: float = 0.0
+    warmup: int = 200  # linear warm-up iterations
+    milestones: list[int] = field(default_factory=list)  # absolute iterations where lr *= gamma
+    gamma: float = 0.05
+    grad_clip: float = 0.0  # 0 = off
+
+
+def lr_factor(it: int, cfg: OptimConfig) -> float:
+    """Linear warm-up over ``warmup`` iterations, then x gamma at each milestone."""
+    if it < cfg.warmup:
+        return (it + 1) / (cfg.warmup + 1)
+    return cfg.gamma ** sum(it >= m for m in cfg.milestones)

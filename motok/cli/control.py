@@ -17,13 +17,11 @@ app.add_typer(expert_app, name="expert")
 
 
 def _run(fn, *args, **kwargs):
+    """User errors become one line and exit code 2 (the root CLI's convention)."""
     from motok.checkpoint import CheckpointError
-    from motok.cli.main import fail, run
     from motok.sim.humanoid import HumanoidError
-    try:
-        return run(fn, *args, **kwargs)
-    except (CheckpointError, HumanoidError, ValueError) as e:
-        fail(str(e))
+    from motok.cli.main import run
+    return run(fn, *args, catch=(CheckpointError, HumanoidError, ValueError), **kwargs)
 
 
 @expert_app.command("train")

@@ -17,17 +17,11 @@ JsonOut = typer.Option(False, "--json", help="Print the result as JSON.")
 
 
 def _run(fn, *args, **kwargs):
-    """Errors a user causes become one line and exit code 2 (the root CLI's convention)."""
+    """User errors become one line and exit code 2 (the root CLI's convention)."""
     from motok.checkpoint import CheckpointError
-    from motok.cli.main import fail, run
     from motok.eval.evaluator import EvaluatorError
-
-    def guarded():
-        try:
-            return fn(*args, **kwargs)
-        except (CheckpointError, EvaluatorError, ValueError) as e:
-            fail(str(e))
-    return run(guarded)
+    from motok.cli.main import run
+    return run(fn, *args, catch=(CheckpointError, EvaluatorError, ValueError), **kwargs)
 
 
 def _flat(summary: dict, as_json: bool, title: str):

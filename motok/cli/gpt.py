@@ -16,17 +16,11 @@ app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes
 def _run(fn, *args, **kwargs):
     """User errors become one line and exit code 2 (the root CLI's convention)."""
     from motok.checkpoint import CheckpointError
-    from motok.cli.main import fail, run
     from motok.gpt.train import GPTError
     from motok.text.encoders import TextEncoderError
     from motok.tokenizer.train import TokenizerError
-
-    def guarded():
-        try:
-            return fn(*args, **kwargs)
-        except (CheckpointError, GPTError, TextEncoderError, TokenizerError) as e:
-            fail(str(e))
-    return run(guarded)
+    from motok.cli.main import run
+    return run(fn, *args, catch=(CheckpointError, GPTError, TextEncoderError, TokenizerError), **kwargs)
 
 
 def _report(summary: dict, as_json: bool, title: str):

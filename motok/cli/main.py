@@ -53,8 +53,9 @@ def fail(msg: str, code: int = 2):
     raise typer.Exit(code)
 
 
-def run(fn, *args, **kwargs):
-    """Call into a stage, turning the errors users cause into one clear line and exit code 2."""
+def run(fn, *args, catch: tuple[type[BaseException], ...] = (), **kwargs):
+    """Call into a stage, turning the errors users cause into one clear line and exit code 2.
+    A stage's own CLI adds its error types with ``catch``."""
     from motok.artifacts import ArtifactError
     from motok.config import ConfigError
     from motok.data.bvh import MotionFormatError
@@ -63,7 +64,7 @@ def run(fn, *args, **kwargs):
     try:
         return fn(*args, **kwargs)
     except (ArtifactError, ConfigError, MotionFormatError, DataRootError, SkeletonError, FileNotFoundError,
-            KeyError) as e:
+            KeyError, *catch) as e:
         fail(str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e))
 
 

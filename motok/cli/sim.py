@@ -23,12 +23,10 @@ Sets = typer.Option([], "--set", help="Override a HumanoidConfig key: --set key=
 
 
 def _run(fn, *args, **kwargs):
-    from motok.cli.main import fail, run
+    """User errors become one line and exit code 2 (the root CLI's convention)."""
     from motok.sim.humanoid import HumanoidError
-    try:
-        return run(fn, *args, **kwargs)
-    except (HumanoidError, ValueError) as e:
-        fail(str(e))
+    from motok.cli.main import run
+    return run(fn, *args, catch=(HumanoidError, ValueError), **kwargs)
 
 
 def _setup(data: Path, humanoid: Optional[Path], hz: Optional[float], clips):

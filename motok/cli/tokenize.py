@@ -15,17 +15,11 @@ NumCodebooks = typer.Option(None, "--num-codebooks", "-m", help="Use only the fi
 
 
 def _run(fn, *args, **kwargs):
-    """Errors a user causes become one line and exit code 2 (the root CLI's convention)."""
+    """User errors become one line and exit code 2 (the root CLI's convention)."""
     from motok.checkpoint import CheckpointError
-    from motok.cli.main import fail, run
     from motok.tokenizer.train import TokenizerError
-
-    def guarded():
-        try:
-            return fn(*args, **kwargs)
-        except (CheckpointError, TokenizerError) as e:
-            fail(str(e))
-    return run(guarded)
+    from motok.cli.main import run
+    return run(fn, *args, catch=(CheckpointError, TokenizerError), **kwargs)
 
 
 def _report(summary: dict, as_json: bool, title: str):

@@ -12,7 +12,7 @@ import torch
 import torch.distributed as dist
 
 from motok.artifacts import Provenance, command_line
-from motok.checkpoint import rng_state, save_bundle, sha256_state
+from motok.checkpoint import rng_state, save_bundle, set_rng_state, sha256_state
 from motok.config import to_dict
 from motok import progress as _progress
 
@@ -83,3 +83,14 @@ def save_checkpoint(run, kind: str, model: torch.nn.Module, opt, sched, data_gen
     save_bundle(run, kind, model.state_dict(), to_dict(cfg), prov, train_state=ts,
                 extra={**extra, "iteration": it, "world_size": d.world, "rank_state_sha256": hashes,
                        "last_metrics": last})
+
+
+def restore_checkpoint(model: torch.nn.Module, opt, sched, data_gen: torch.Generator, d: Dist, state: dict,
+                       train_state: dict) -> int:
+    """The inverse of :func:`save_checkpoint` for one rank; returns the iteration to continue from."""
+    model.load_state_dict(state)
+    opt.load_state_dict(train_state["optimizer"])
+    sched.load_state_dict(train_state["scheduler"])
+    set_rng_state(train_state["rng"])
+    data_gen.set_state(train_state["data_rng"][d.rank].clone())
+    return int(train_state["iteration"])

@@ -33,9 +33,10 @@ import torch.nn.functional as F
 
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind, set_rng_state
+from motok.checkpoint import MetricsLog, load_bundle, register_kind
 from motok.config import ConfigError, from_dict, load_config, to_dict
-from motok.distributed import Dist, init_distributed, pick_device, save_checkpoint, shutdown_distributed
+from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
+                               shutdown_distributed)
 from motok.optim import OptimConfig, lr_factor
 from motok.gpt.model import GPTConfig, MotionGPT
 from motok.text.cache import TextEmbeddingCache
@@ -270,12 +271,7 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
             raise GPTError(f"--resume: {tokens} is not the tokens artifact {run} was trained on (hash differs)")
         if int(ts["world_size"]) != d.world:
             raise GPTError(f"--resume: saved with {int(ts['world_size'])} ranks, now {d.world}")
-        model.load_state_dict(state)
-        opt.load_state_dict(ts["optimizer"])
-        sched.load_state_dict(ts["scheduler"])
-        set_rng_state(ts["rng"])
-        sampler.gen.set_state(ts["data_rng"][d.rank].clone())
-        start = int(ts["iteration"])
+        start = restore_checkpoint(model, opt, sched, sampler.gen, d, state, ts)
     net = model
     if d.world > 1:
         ids = [d.local_rank] if device.type == "cuda" else None

@@ -24,10 +24,11 @@ import torch
 
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind, set_rng_state
+from motok.checkpoint import MetricsLog, load_bundle, register_kind
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
-from motok.distributed import Dist, init_distributed, pick_device, save_checkpoint, shutdown_distributed
+from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
+                               shutdown_distributed)
 from motok.optim import OptimConfig, lr_factor  # noqa: F401 (lr_factor re-exported)
 from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss  # noqa: F401 (re-exported)
 from motok.tokenizer.quantize import QuantizerConfig
@@ -249,12 +250,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
     start = 0
     if saved is not None:
         _, state, ts = saved
-        model.load_state_dict(state)
-        opt.load_state_dict(ts["optimizer"])
-        sched.load_state_dict(ts["scheduler"])
-        set_rng_state(ts["rng"])
-        sampler.gen.set_state(ts["data_rng"][d.rank].clone())
-        start = int(ts["iteration"])
+        start = restore_checkpoint(model, opt, sched, sampler.gen, d, state, ts)
 
     net = model
     if d.world > 1:

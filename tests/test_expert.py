@@ -130,16 +130,17 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
 
     monkeypatch.setenv("MOTOK_CACHE", str(tmp_path / "cache"))
     recipe = tmp_path / "r.yaml"
-    recipe.write_text("iterations: 1\nenv: {num_envs: 4}\nppo: {horizon: 8, minibatch_size: 32}\n"
+    recipe.write_text("iterations: 3\nenv: {num_envs: 4}\nppo: {horizon: 8, minibatch_size: 32}\n"
                       "net: {encoder: [32], decoder: [32], value: [32]}\n"
                       "amp: {hidden: [16], batch_size: 32, updates: 1}\n")
     run = tmp_path / "run"
     runner = CliRunner()
     r = runner.invoke(app, ["--quiet", "control", "expert", "train", "--data", str(small_dataset), "--clips",
                             "dataset-2_walk_normal_*", "--recipe", str(recipe), "--humanoid", str(hum.path),
-                            "-o", str(run), "--json"])
+                            "-o", str(run), "--until", "1", "--json"])
     assert r.exit_code == 0, r.output
     meta = json.loads((run / "bundle.json").read_text())
+    assert meta["extra"]["iteration"] == 1 and meta["config"]["iterations"] == 3  # stopped early, schedule kept
     assert meta["kind"] == "control-expert" and meta["extra"]["obs_dim"] == 102 and meta["extra"]["action_dim"] == 37
     assert len(meta["extra"]["mjcf_sha256"]) == 64 and (run / "humanoid.xml").exists()
     r = runner.invoke(app, ["--quiet", "control", "expert", "eval", "--run", str(run), "--clips",
@@ -149,6 +150,12 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     o = res["overall"]
     assert o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0 and o["g_mpjpe_mm"] >= o["mpjpe_mm"] * 0.2
     assert all(v["seconds"] > 0 for v in res["clips"].values()) and (tmp_path / "e.gif").exists()
+    assert o["success_rate_any_body"] <= o["success_rate"] and o["termination"] == "any body error > 0.5 m"
+    r = runner.invoke(app, ["--quiet", "control", "expert", "eval", "--run", str(run), "--clips",
+                            "dataset-2_walk_normal_00[12]", "--termination", "mean", "--distance", "0.02", "--json"])
+    strict = json.loads(r.output)  # any body > 0.5 m implies a mean > 0.5 / 21 > 0.02 m: no clip lasts longer
+    assert r.exit_code == 0 and strict["overall"]["termination"] == "mean body error > 0.02 m"
+    assert all(v["seconds"] <= res["clips"][k]["seconds"] for k, v in strict["clips"].items())
     r = runner.invoke(app, ["control", "expert", "train", "--data", str(small_dataset), "--clips", "nope*",
                             "-o", str(tmp_path / "x")])
     assert r.exit_code == 2 and "nope" in r.output

@@ -229,3 +229,16 @@ def test_plot_curves_skips_malformed_lines(tmp_path):
     with pytest.raises(ValueError, match="no numeric values"):
         plot_curves([{"iteration": 1, "tag": "x"}], tmp_path / "empty.png")
     assert not (tmp_path / "empty.png").exists()
+
+
+def test_plot_curves_second_axis(tmp_path):
+    """A top axis for a field that grows with x (wall time over samples) adds ticks and labels,
+    so the figure differs from the one without it; a field that does not grow is refused."""
+    recs = [{"samples": 4096 * i, "wall_s": 0.7 * i, "success": i / 30} for i in range(1, 30)]
+    one = plot_curves(recs, tmp_path / "one.png", ["success"], "samples")
+    two = plot_curves(recs, tmp_path / "two.png", ["success"], "samples", x2="wall_s")
+    with Image.open(one) as a, Image.open(two) as b:
+        assert a.size == b.size and not np.array_equal(np.asarray(a), np.asarray(b))
+    recs[5]["wall_s"] = 0.0
+    with pytest.raises(ValueError, match="must grow"):
+        plot_curves(recs, tmp_path / "bad.png", ["success"], "samples", x2="wall_s")

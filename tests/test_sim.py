@@ -229,6 +229,30 @@ def test_batch_equals_single_envs(hum, lib, stepper):
             assert rb["total"][i] == rs["total"][0] and tb[i] == ts[0]
 
 
+def test_reference_action_base_offsets_from_the_next_reference_frame(hum, lib):
+    """The reference base is the next frame's angles plus (kv / kp) times its velocities, so the
+    position servo tracks both; zero actions on it are those offsets on the current base (to
+    rounding: ``q + (b - q)`` is not bit-identical to ``b``)."""
+    clips, frames = [0, 5, 9], [3, 30, 60]
+    ref = _env(hum, lib, num_envs=3, action_base="reference")
+    cur = _env(hum, lib, num_envs=3)
+    for e in (ref, cur):
+        e.reset(clips=clips, frames=frames)
+    m, L = hum.model, lib
+    assert np.allclose(ref.velocity_lead, m.actuator_biasprm[:, 2] / m.actuator_biasprm[:, 1])
+    for _ in range(6):
+        g = L.starts[ref.clip] + ref.frame + 1
+        target = L.qpos[g][:, 7:] + ref.velocity_lead * L.qvel[g][:, 6:]  # hinges follow the free joint
+        assert np.allclose(ref.action_base(), target) and np.allclose(cur.action_base(), cur.qpos[:, 7:])
+        a = ref.action_base() - cur.action_base()
+        o1, g1, r1, *_ = ref.step(np.zeros((3, ref.action_dim)))
+        o2, g2, r2, *_ = cur.step(a)
+        assert np.allclose(o1, o2, atol=1e-7) and np.allclose(g1, g2, atol=1e-7)
+        assert np.allclose(r1["total"], r2["total"], atol=1e-7)
+    with pytest.raises(ValueError, match="action_base"):
+        _env(hum, lib, num_envs=1, action_base="target")
+
+
 def test_batch_stepper_is_plain_mujoco(hum, lib):
     pytest.importorskip("mujoco.batch")
     from motok.sim.env import BatchStepper
@@ -295,6 +319,25 @@ def test_early_termination_and_truncation_are_distinct(hum, lib):
     env.reset([0, 1], clips=[0, 0], frames=[n - 3, n - 4])
     _, _, _, term, trunc, _ = env.step(_pd_actions(env))
     assert trunc.tolist() == [True, False] and not term.any()
+
+
+def test_termination_on_any_body_or_on_the_mean(hum, lib):
+    """A swung arm puts the hand > 0.5 m off while the body as a whole stays: "any" ends the
+    episode, "mean" (PHC's failure test) does not; a 1 m teleport ends both."""
+    envs = {k: _env(hum, lib, num_envs=2, termination=k) for k in ("any", "mean")}
+    k = list(hum.layout.hinge_names).index("UpperArm_L_z")
+    for env in envs.values():
+        env.reset(clips=[0, 0], frames=[5, 5])
+        q, v = env.qpos.copy(), env.qvel.copy()
+        q[0, env.hinge_adr[k]] += 2.5
+        q[1, 0] += 1.0
+        env.stepper.set_state(np.array([0, 1]), q, v)
+    out = {key: env.step(_pd_actions(env)) for key, env in envs.items()}
+    info = out["mean"][5]
+    assert info["max_body_error"][0] > 0.5 > info["mean_body_error"][0] and info["mean_body_error"][1] > 0.5
+    assert out["any"][3].tolist() == [True, True] and out["mean"][3].tolist() == [False, True]
+    with pytest.raises(ValueError, match="termination"):
+        _env(hum, lib, num_envs=1, termination="median")
 
 
 def test_pd_tracking_baseline_falls_but_follows_at_first(hum, lib):

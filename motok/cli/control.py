@@ -33,6 +33,8 @@ def train_cmd(
     sets: list[str] = typer.Option([], "--set", help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
     humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached)."),
     resume: bool = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped."),
+    until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the LR schedule still "
+                                        "spans the recipe's iterations; --resume continues)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
@@ -48,7 +50,7 @@ def train_cmd(
         hum = load_humanoid(out / "humanoid.xml") if resume and (out / "humanoid.xml").exists() else (
             load_humanoid(humanoid) if humanoid else humanoid_for(data))
         lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips))
-        return train(cfg, out, hum, lib, resume=resume, data=data)
+        return train(cfg, out, hum, lib, resume=resume, until=until, data=data)
 
     _report(_run(go), as_json, title="control expert train")
 
@@ -59,6 +61,9 @@ def eval_cmd(
     data: Optional[Path] = typer.Option(None, "--data", help="Dataset (default: the one it was trained on)."),
     clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob (default: the training clips)."),
     render: Optional[Path] = typer.Option(None, "--render", help="Video of the first clip (.mp4/.gif)."),
+    termination: Optional[str] = typer.Option(None, "--termination",
+                                              help="Failure test: 'any' body or the 'mean' (default: the run's)."),
+    distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the run's)."),
     as_json: bool = typer.Option(False, "--json", help="Print the full results as JSON."),
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
@@ -67,6 +72,10 @@ def eval_cmd(
     def go():
         from motok.sim.reference import load_library
         cfg, hum, ac, meta = load_expert(run_dir)
+        if termination is not None:
+            cfg.env.termination = termination
+        if distance is not None:
+            cfg.env.termination_distance = distance
         src = data or meta["extra"].get("data")
         if not src:
             raise ValueError(f"{run_dir} does not record its dataset: pass --data")
@@ -92,5 +101,7 @@ def eval_cmd(
     t.add_row("[bold]overall", f"{o['success_rate']:.0%}", f"{o['seconds_played']:.1f}",
               *[f"{o[c]:.2f}" for c in cols[2:]])
     _progress.console.print(t)
+    _progress.info(f"success: {o['termination']} ends a clip; {o['success_rate_any_body']:.0%} also kept every "
+                   "single body within that distance")
     if "video" in res:
         _progress.info(f"wrote {res['video']}")

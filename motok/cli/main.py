@@ -173,12 +173,17 @@ def export_bvh_cmd(
 
 @app.command()
 def plot(metrics: Path = typer.Argument(..., help="A run folder or its metrics.jsonl."),
-         out: Optional[Path] = typer.Option(None, "-o", "--out", help="PNG (default RUN/curves.png).")):
+         out: Optional[Path] = typer.Option(None, "-o", "--out", help="PNG (default RUN/curves.png)."),
+         keys: Optional[str] = typer.Option(None, "--keys", help="Comma-separated metrics (default: all)."),
+         x: str = typer.Option("iteration", "--x", help="Field on the x axis, e.g. samples."),
+         x2: Optional[str] = typer.Option(None, "--x2", help="Second x axis on top, e.g. wall_s."),
+         smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve.")):
     """Plot training curves from a metrics JSONL to PNG."""
     from motok.render.plot import plot_curves
     src = metrics / "metrics.jsonl" if metrics.is_dir() else metrics
     dst = out or src.with_name("curves.png")
-    run(plot_curves, src, dst)
+    names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
+    run(plot_curves, src, dst, names, x, smooth=smooth, x2=x2)
     _progress.info(f"wrote {dst}")
 
 

@@ -46,12 +46,14 @@ def _ema(values: Sequence[float], weight: float) -> list[float]:
 
 def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], out_png: str | os.PathLike,
                 keys: Sequence[str] | None = None, x: str = "iteration", *, smooth: float = 0.0,
-                logy: bool | Sequence[str] = False, title: str | None = None) -> Path:
+                logy: bool | Sequence[str] = False, title: str | None = None, x2: str | None = None) -> Path:
     """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
 
     ``keys`` defaults to every numeric field except ``x``, in first-seen order. ``smooth`` in
     [0, 1) is an exponential-moving-average weight: the raw curve is drawn faintly behind the
     smoothed one. ``logy`` is True for every subplot or a list of keys to draw on a log scale.
+    ``x2`` labels a second, top axis with another field that grows with ``x`` (e.g. ``samples``
+    below, ``wall_s`` on top), read off by interpolation.
     """
     if not 0.0 <= smooth < 1.0:
         raise ValueError(f"smooth must be in [0, 1), got {smooth}")
@@ -68,6 +70,12 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     for k in keys:
         pts = [(r[x] if _is_number(r.get(x)) else i, r[k]) for i, r in enumerate(records) if _is_number(r.get(k))]
         series[k] = pts
+    top = None
+    if x2:
+        pairs = sorted({(r[x], r[x2]) for r in records if _is_number(r.get(x)) and _is_number(r.get(x2))})
+        if len(pairs) < 2 or any(b[1] < a[1] for a, b in zip(pairs, pairs[1:])):
+            raise ValueError(f"{source}: {x2!r} must grow with {x!r} to label a second axis")
+        top = tuple(map(list, zip(*pairs)))
     empty = [k for k, pts in series.items() if not pts]
     if not keys or len(empty) == len(keys):
         raise ValueError(f"{source}: no numeric values to plot for keys {keys or '(none found)'}")
@@ -97,6 +105,11 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
             ax.plot(xs, ys, color="C0", linewidth=1.4)
         if k in log_keys and min(ys) > 0:
             ax.set_yscale("log")
+        if top is not None:
+            import numpy as np
+            fwd = lambda v, a=top: np.interp(v, a[0], a[1])  # noqa: E731
+            inv = lambda v, a=top: np.interp(v, a[1], a[0])  # noqa: E731
+            ax.secondary_xaxis("top", functions=(fwd, inv)).set_xlabel(x2, fontsize=8)
     for ax in axes.flat[len(keys):]:
         ax.set_visible(False)
     if title:

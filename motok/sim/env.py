@@ -1,17 +1,22 @@
 """N humanoids on one model, tracking reference motions: the batched imitation environment.
 
 ``reset(ids)`` puts environments in a reference state (reference state initialisation: a random
-clip and frame, or given ones); ``step(actions)`` sets PD targets ``q_hat = q + a`` (residual
-actions on the current hinge positions, as the hybrid-latent paper's code does), clipped to the
-joint ranges, holds them for ``substeps`` physics steps, and returns
+clip and frame, or given ones); ``step(actions)`` sets PD targets ``q_hat = base + a``, residual
+actions on either the current hinge positions (``action_base="current"``, as the hybrid-latent
+paper's code does, and the only choice for policies without a reference) or the next reference
+frame's (``"reference"``: a zero action is PD tracking of the reference's angles *and* velocities,
+the usual residual form for imitation experts; exploration noise does not accumulate), clipped
+to the joint ranges, holds them for ``substeps`` physics steps, and returns
 
     obs (N, D_s)         Eq. 7 observation, heading frame
     goal (N, D_g)        Eq. 9 differences to the next K reference frames
     reward (dict)        Eq. 10 terms ``pos``, ``rot``, ``vel``, ``ang_vel`` and ``total``, each (N,)
-    terminated (N,)      a body more than 0.5 m from its reference, a non-finite action
+    terminated (N,)      bodies too far from their reference (``termination``: any body, or on
+                         average as PHC counts a failure, beyond 0.5 m), a non-finite action
                          (with ``nan_actions="terminate"``) or a diverged simulation
     truncated (N,)       time limit or the end of the reference clip, never set with terminated
-    info (dict)          ``clip``, ``frame``, ``max_body_error``, ``diverged``, ``invalid_action``
+    info (dict)          ``clip``, ``frame``, ``max_body_error``, ``mean_body_error``, ``diverged``,
+                         ``invalid_action``
 
 There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
 episodes) and then calls ``reset(ids)`` for the finished environments.
@@ -35,7 +40,7 @@ from typing import Protocol
 import numpy as np
 
 from motok.sim.humanoid import Humanoid, load_humanoid
-from motok.sim.obs import (Bodies, RewardConfig, TreeKinematics, cross3, goal, max_body_error, observation,
+from motok.sim.obs import (Bodies, RewardConfig, TreeKinematics, body_errors, cross3, goal, observation,
                            reward_terms)
 from motok.sim.reference import ReferenceLibrary
 
@@ -194,11 +199,13 @@ class EnvConfig:
     control_hz: float | None = None  # None: the humanoid's (30 Hz by default); the library must match
     max_episode_seconds: float = 10.0
     goal_frames: int = 1  # K reference frames ahead in the goal (Eq. 9)
-    termination_distance: float = 0.5  # m, any body from its reference
+    termination_distance: float = 0.5  # m, from the reference
+    termination: str = "any"  # "any" body beyond the distance, or the "mean" over bodies (PHC's failure test)
     early_termination: bool = True
     nthread: int = 2
     stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available
-    action_scale: float = 1.0  # q_hat = q + action_scale * a
+    action_scale: float = 1.0  # q_hat = base + action_scale * a
+    action_base: str = "current"  # base = current hinge angles q, or "reference": the next reference frame's
     nan_actions: str = "raise"  # or "terminate": the env is terminated, the others step normally
     seed: int = 0
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -215,6 +222,10 @@ class HumanoidEnv:
         hz = float(c.control_hz or self.hum.control_hz)
         if abs(library.fps - hz) > 1e-6:
             raise ValueError(f"the reference library is at {library.fps:g} Hz but the control rate is {hz:g} Hz")
+        if c.action_base not in ("current", "reference"):
+            raise ValueError(f"action_base must be 'current' or 'reference', not {c.action_base!r}")
+        if c.termination not in ("any", "mean"):
+            raise ValueError(f"termination must be 'any' or 'mean', not {c.termination!r}")
         if c.nan_actions not in ("raise", "terminate"):
             raise ValueError(f"nan_actions must be 'raise' or 'terminate', not {c.nan_actions!r}")
         self.dt = 1.0 / hz
@@ -223,6 +234,13 @@ class HumanoidEnv:
         self.stepper = stepper or make_stepper(c.stepper, self.hum, N, self.substeps, c.nthread)
         self.hinge_adr = self.hum.hinge_qpos_adr
         self.ctrl_low, self.ctrl_high = m.actuator_ctrlrange[:, 0].copy(), m.actuator_ctrlrange[:, 1].copy()
+        # MuJoCo's position actuator: tau = kp (ctrl - q) - kv qd, so ctrl = q* + (kv / kp) qd* gives
+        # tau = kp (q* - q) + kv (qd* - qd), a PD servo on a target angle *and* velocity.
+        self.velocity_lead = -m.actuator_biasprm[:, 2] / m.actuator_gainprm[:, 0]
+        driven = m.actuator_trnid[:, 0]
+        if not np.array_equal(m.jnt_qposadr[driven], self.hinge_adr):
+            raise ValueError(f"{self.hum.path}: actuators must drive the hinges in qpos order")
+        self.hinge_dof = m.jnt_dofadr[driven]
         self.end_effectors = list(self.hum.skeleton.end_effectors)
         self.max_steps = max(1, int(round(c.max_episode_seconds * hz)))
         self.rng = np.random.default_rng(c.seed)
@@ -323,8 +341,7 @@ class HumanoidEnv:
                 raise ValueError(f"non-finite actions for environments {np.flatnonzero(invalid).tolist()}; "
                                  "nothing was stepped (set nan_actions='terminate' to end those episodes instead)")
             a = np.where(invalid[:, None], 0.0, a)
-        q = self.stepper.qpos[:, self.hinge_adr]
-        ctrl = np.clip(q + self.cfg.action_scale * a, self.ctrl_low, self.ctrl_high)
+        ctrl = np.clip(self.action_base() + self.cfg.action_scale * a, self.ctrl_low, self.ctrl_high)
         diverged = self.stepper.step(ctrl)
         self.frame += 1
         self.steps += 1
@@ -332,15 +349,25 @@ class HumanoidEnv:
         self._update(np.arange(self.num_envs), refs.take((slice(None), slice(1, None))))
         ref = refs.take((slice(None), 0))
         rewards = reward_terms(self.bodies, ref, self.cfg.reward)
-        err = max_body_error(self.bodies, ref)
-        fell = err > self.cfg.termination_distance if self.cfg.early_termination else np.zeros_like(diverged)
+        dist = body_errors(self.bodies, ref)
+        err, mean_err = dist.max(-1), dist.mean(-1)
+        off = mean_err if self.cfg.termination == "mean" else err
+        fell = off > self.cfg.termination_distance if self.cfg.early_termination else np.zeros_like(diverged)
         terminated = fell | diverged | invalid
         truncated = (self.steps >= self.limit) & ~terminated
         for v in rewards.values():
             v[diverged | invalid] = 0.0
         info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "max_body_error": err,
+                "mean_body_error": mean_err,
                 "diverged": diverged, "invalid_action": invalid, "episode_steps": self.steps.copy()}
         return self._obs.copy(), self._goal.copy(), rewards, terminated, truncated, info
+
+    def action_base(self) -> np.ndarray:
+        """``(N, nu)`` hinge angles the next actions are offsets from (``EnvConfig.action_base``)."""
+        if self.cfg.action_base == "current":
+            return self.stepper.qpos[:, self.hinge_adr]
+        g = np.minimum(self.lib.starts[self.clip] + self.frame + 1, self.lib.starts[self.clip + 1] - 1)
+        return self.lib.qpos[g][:, self.hinge_adr] + self.velocity_lead * self.lib.qvel[g][:, self.hinge_dof]
 
     def reference_qpos(self, ids=None) -> np.ndarray:
         """The reference qpos at each env's current frame (for PD tracking baselines)."""

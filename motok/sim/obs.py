@@ -209,6 +209,11 @@ def reward_terms(sim: Bodies, ref: Bodies, cfg: RewardConfig) -> dict[str, np.nd
     return r
 
 
+def body_errors(sim: Bodies, ref: Bodies) -> np.ndarray:
+    """``(N, J)`` distance of each body to its reference (m)."""
+    return np.sqrt(((sim.pos - ref.pos) ** 2).sum(-1))
+
+
 def max_body_error(sim: Bodies, ref: Bodies) -> np.ndarray:
-    """``(N,)`` largest body distance to the reference: early termination fires above 0.5 m."""
-    return np.sqrt(((sim.pos - ref.pos) ** 2).sum(-1)).max(-1)
+    """``(N,)`` largest body distance to the reference."""
+    return body_errors(sim, ref).max(-1)

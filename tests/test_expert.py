@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -92,12 +93,14 @@ def test_imitation_reward_is_one_on_the_reference(hum, walk_lib):
 def test_expert_loop_on_a_standing_reference_logs_its_metrics(hum, tmp_path):
     # PPO's learning is tested on a trivial task in test_ppo.py; on the humanoid it needs far
     # more samples than CI has (docs/control.md). Here: the loop without AMP, and its log.
-    cfg = small_cfg(iterations=3, w_im=1.0, w_style=0.0)
+    cfg = small_cfg(iterations=3, w_im=1.0, w_style=0.0, eval_every=2)
     cfg.env.max_episode_seconds, cfg.ppo.horizon = 0.5, 15
     out = train(cfg, tmp_path / "run", hum, standing_library(hum))
     assert out["iterations"] == 3 and out["samples"] == 3 * 8 * 15
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2, 3]
+    assert ["eval_success" in r for r in rows] == [False, True, False]  # eval_every=2
+    assert 0.0 <= rows[1]["eval_success_any_body"] <= rows[1]["eval_success"] <= 1.0 and rows[1]["eval_seconds"] > 0
     for r in rows:
         assert 0.0 < r["r_im"] <= 1.0 and r["r_style"] == 0.0 and r["samples_per_s"] > 0
     done = [r for r in rows if "success" in r]
@@ -117,6 +120,10 @@ def test_expert_training_resumes_exactly(hum, walk_lib, tmp_path):
     assert a.keys() == b.keys() and any(k.startswith("disc.") for k in a) and "ac.norm.mean" in a
     for k in a:
         assert torch.equal(a[k], b[k]), k
+    # evaluation passes in between change nothing of the training (no RNG drawn, no state touched)
+    train(replace(cfg, eval_every=1), tmp_path / "evaluated", hum, walk_lib)
+    c = load_file(tmp_path / "evaluated" / "model.safetensors")
+    assert all(torch.equal(a[k], c[k]) for k in a)
     la = (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()
     lb = (tmp_path / "split" / "metrics.jsonl").read_text().splitlines()
     strip = lambda s: {k: v for k, v in json.loads(s).items() if not k.endswith("_s")}  # noqa: E731 (timings differ)

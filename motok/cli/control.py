@@ -67,7 +67,8 @@ def eval_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the full results as JSON."),
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
-    from motok.control.expert import evaluate, load_expert, select_clips
+    from motok.control.evaluate import evaluate
+    from motok.control.expert import load_expert, select_clips
 
     def go():
         from motok.sim.reference import load_library

@@ -74,6 +74,7 @@ class ExpertConfig:
     w_im: float = 0.5
     w_style: float = 0.5
     save_every: int = 50
+    eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
     torch_threads: int = 1  # 2 fights MuJoCo's worker threads on a 2-core machine: 3x slower updates
     env: EnvConfig = field(default_factory=lambda: EnvConfig(num_envs=64))
     ppo: PPOConfig = field(default_factory=PPOConfig)
@@ -313,6 +314,9 @@ def _train(cfg, run: Path, hum, lib, resume, until, data, command) -> dict:
         task = bar.add_task("expert", total=stop * per_it, completed=tr.iteration * per_it, ret="-", len="-", succ="-")
         while tr.iteration < stop:
             stats = tr.step()
+            if cfg.eval_every and tr.iteration % cfg.eval_every == 0:
+                from motok.control.evaluate import eval_metrics, evaluate
+                stats.update(eval_metrics(evaluate(cfg, hum, tr.ac, lib)))
             last = {**last, **stats}
             log.log(stats)
             bar.update(task, advance=per_it, ret=f"{last.get('episode_return', 0):.1f}",
@@ -338,60 +342,3 @@ def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
     ac = build_actor_critic(cfg, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
     ac.load_state_dict(_split(state, "ac."))
     return cfg, hum, ac, meta
-
-
-def evaluate(cfg: ExpertConfig, hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, render=None) -> dict:
-    """Every clip from its first frame with the mean action, until the clip's end (success) or early
-    termination (the env's criterion; ``success_rate_any_body`` also requires every single body to
-    have stayed within the distance, the stricter test). Errors over the frames played: MPJPE (root-relative) and G-MPJPE (global) in mm,
-    root velocity (mm/frame) and acceleration (mm/frame^2) errors from finite differences."""
-    N = len(lib)
-    env = HumanoidEnv(hum, lib, replace(cfg.env, num_envs=N, max_episode_seconds=1e9, seed=cfg.seed))
-    obs, goal = env.reset(clips=np.arange(N), frames=0)
-    g0 = lib.starts[:-1]
-    pos, ref, qpos = [env.bodies.pos.copy()], [lib.body_pos[g0]], [env.qpos[0].copy()]
-    alive, played = [np.ones(N, bool)], np.zeros(N, dtype=np.int64)
-    active, success = np.ones(N, bool), np.zeros(N, bool)
-    worst = np.zeros(N)  # largest single-body error over the frames played
-    while active.any():
-        _, a, _, _ = ac.act(_t(np.concatenate([obs, goal], 1)), deterministic=True)
-        obs, goal, _, term, trunc, info = env.step(a.numpy())
-        worst = np.where(active, np.maximum(worst, info["max_body_error"]), worst)
-        g = np.minimum(lib.starts[env.clip] + env.frame, lib.starts[env.clip + 1] - 1)
-        pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[g]), alive.append(active.copy())
-        qpos.append(env.qpos[0].copy())
-        played += active
-        success |= active & trunc
-        active &= ~(term | trunc)
-    P, R, A = np.stack(pos, 1), np.stack(ref, 1), np.stack(alive, 1)
-    per = {}
-    for i, name in enumerate(lib.names):
-        p, r = P[i, A[i]], R[i, A[i]]
-        rel = (p - p[:, :1]) - (r - r[:, :1])
-        v, vr = np.diff(p[:, 0], axis=0), np.diff(r[:, 0], axis=0)
-        per[name] = {"success": bool(success[i]), "max_body_error_m": float(worst[i]),
-                     "seconds": float(played[i] * env.dt),
-                     "clip_seconds": float((lib.lengths[i] - 1 - env.cfg.goal_frames) * env.dt),
-                     "mpjpe_mm": 1e3 * float(np.linalg.norm(rel, axis=-1).mean()),
-                     "g_mpjpe_mm": 1e3 * float(np.linalg.norm(p - r, axis=-1).mean()),
-                     "root_vel_err_mm": 1e3 * float(np.linalg.norm(v - vr, axis=-1).mean()) if len(v) else float("nan"),
-                     "root_acc_err_mm": 1e3 * float(np.linalg.norm(np.diff(v - vr, axis=0), axis=-1).mean())
-                     if len(v) > 1 else float("nan")}
-    w = np.array([v["seconds"] for v in per.values()])
-    strict = success & (worst <= env.cfg.termination_distance)
-    overall = {"clips": N, "termination": f"{env.cfg.termination} body error > {env.cfg.termination_distance:g} m",
-               "success_rate": float(success.mean()), "success_rate_any_body": float(strict.mean()),
-               "seconds_played": float(w.sum())}
-    for k in ("mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm"):
-        vals = np.array([v[k] for v in per.values()])
-        ok = np.isfinite(vals)
-        overall[k] = float(np.average(vals[ok], weights=np.maximum(w[ok], 1e-9))) if ok.any() else float("nan")
-    out = {"overall": overall, "clips": per}
-    if render is not None:
-        from motok.sim.render import render_trajectory
-        n = int(played[0]) + 1
-        ghost = lib.qpos[lib.starts[0]:lib.starts[0] + n]
-        path, backend = render_trajectory(hum, np.stack(qpos)[:n], render, lib.fps, ghost=ghost,
-                                          title=f"expert {lib.names[0]}")
-        out["video"] = f"{path} ({backend})"
-    return out

@@ -166,3 +166,15 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     r = runner.invoke(app, ["control", "expert", "train", "--data", str(small_dataset), "--clips", "nope*",
                             "-o", str(tmp_path / "x")])
     assert r.exit_code == 2 and "nope" in r.output
+
+
+def test_control_recipes_load_with_their_measured_choices():
+    from pathlib import Path
+
+    from motok.config import load_config
+    root = Path(__file__).resolve().parent.parent / "recipes" / "control"
+    small, paper = (load_config(ExpertConfig, root / f"{n}.yaml") for n in ("expert", "expert_paper"))
+    for cfg in (small, paper):
+        assert cfg.env.action_base == "reference" and cfg.env.termination == "mean" and cfg.eval_every > 0
+        assert (cfg.w_im, cfg.w_style) == (0.5, 0.5) and cfg.ppo.gamma == 0.99 and cfg.ppo.lam == 0.95
+    assert paper.env.num_envs >= 4096 > small.env.num_envs

@@ -23,6 +23,7 @@ import h5py
 import numpy as np
 
 from motok import __version__
+from motok.atomic import atomic_path
 
 # kind -> schema versions this build reads. The first entry is what it writes.
 KINDS: dict[str, tuple[int, ...]] = {
@@ -98,19 +99,11 @@ def write_artifact(path: str | os.PathLike, kind: str, provenance: Provenance) -
     """Open ``path`` for writing an artifact of ``kind``; it appears only if the block succeeds."""
     if kind not in KINDS:
         raise ArtifactError(f"unknown artifact kind {kind!r}; known kinds: {sorted(KINDS)}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["kind"] = kind
-            f.attrs["schema_version"] = KINDS[kind][0]
-            f.attrs["provenance"] = provenance.to_json()
-            yield f
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["kind"] = kind
+        f.attrs["schema_version"] = KINDS[kind][0]
+        f.attrs["provenance"] = provenance.to_json()
+        yield f
 
 
 def open_artifact(path: str | os.PathLike, kind: str | tuple[str, ...] | None = None) -> h5py.File:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import random
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from motok.artifacts import Provenance
+from motok.atomic import atomic_path
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
 
@@ -41,13 +41,8 @@ def register_kind(kind: str, versions: tuple[int, ...] = (1,)) -> None:
 
 
 def _atomic(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:
         write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def rng_state() -> dict[str, Any]:

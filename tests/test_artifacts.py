@@ -8,6 +8,7 @@ import pytest
 
 from motok import __version__
 from motok.artifacts import ArtifactError, Provenance, hash_inputs, open_artifact, provenance_of, write_artifact
+from motok.atomic import atomic_path
 
 
 def _prov(**kw):
@@ -37,6 +38,20 @@ def test_crash_leaves_no_file(tmp_path):
             raise RuntimeError("boom")
     assert not p.exists()
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name", ["clip.gif", "clip.mp4", "curves.png", "walk.bvh", "lib.npz"])
+def test_atomic_path_replaces_only_on_success_and_keeps_the_suffix(tmp_path, name):
+    target = tmp_path / "out" / name
+    with atomic_path(target) as tmp:
+        assert tmp.parent == target.parent and tmp.suffix == target.suffix and tmp.name.startswith(".")
+        tmp.write_bytes(b"first")
+    assert target.read_bytes() == b"first"
+    with pytest.raises(KeyboardInterrupt):  # a crash or Ctrl-C half way: the old file stays whole
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise KeyboardInterrupt
+    assert target.read_bytes() == b"first" and [p.name for p in target.parent.iterdir()] == [name]
 
 
 def test_wrong_kind_and_version_are_named(tmp_path):

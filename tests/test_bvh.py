@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from motok.data.bvh import BvhMotion, MotionFormatError, parse_bvh, read_bvh, write_bvh
+from motok.data.bvh import BvhMotion, MotionFormatError, parse_bvh, read_bvh
+from motok.data.export import write_bvh
 from motok.data.skeleton import detect_skeleton
 from motok.data.sources import iter_sources
 
@@ -239,7 +240,7 @@ def test_write_round_trip(clip, tmp_path, order):
     again = read_bvh(tmp_path / "again.bvh")
     assert again.channels[1] == tuple(a + "rotation" for a in other)
     assert np.abs(again.global_positions() - expected).max() < 0.1
-    assert not list(tmp_path.glob(".*.tmp"))
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind
 
 
 def test_write_rejects_bad_input(tmp_path):

@@ -1,4 +1,4 @@
-"""BVH motion capture files: vectorized parsing, forward kinematics and writing.
+"""BVH motion capture files: vectorized parsing and forward kinematics (writing: ``motok.data.export``).
 
 The HIERARCHY is small (a few hundred tokens) and is walked token by token; the MOTION block
 is most of the file and is read as one numeric array by numpy's C parser. Line-by-line Python
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import re
 import warnings
 from dataclasses import dataclass
@@ -17,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.rotations import euler_to_quat, qinv, qmul, qrot, quat_to_euler
+from motok.rotations import euler_to_quat, qinv, qmul, qrot
 
-__all__ = ["MotionFormatError", "BvhMotion", "parse_bvh", "read_bvh", "write_bvh", "forward_kinematics"]
+__all__ = ["MotionFormatError", "BvhMotion", "parse_bvh", "read_bvh", "forward_kinematics"]
 
 
 class MotionFormatError(ValueError):
@@ -390,59 +389,3 @@ def parse_bvh(data: bytes | str, source: str = "<bvh>") -> BvhMotion:
 
 def read_bvh(path) -> BvhMotion:
     return parse_bvh(Path(path).read_bytes(), str(path))
-
-
-def write_bvh(path, names, parents, offsets, rotations, root_positions, fps, order="ZXY",
-              end_sites=None) -> None:
-    """Write BVH as Blender's importer reads it: one keyword per line, braces on their own lines,
-    6 channels on the root, 3 rotation channels elsewhere (so non-root translations are the
-    ``offsets``), an End Site on every leaf (``end_sites[j]``, else a zero offset). ``rotations``
-    are local quaternions ``(T, J, 4)``; ``root_positions`` is ``(T, 3)``."""
-    names = [str(n) for n in names]
-    parents = np.asarray(parents, dtype=np.int64)
-    offsets, rotations = np.asarray(offsets, dtype=np.float64), np.asarray(rotations, dtype=np.float64)
-    root_positions = np.asarray(root_positions, dtype=np.float64)
-    J, T, order = len(names), len(rotations), str(order).upper()
-    if sorted(order) != ["X", "Y", "Z"]:
-        raise ValueError(f"order must be a permutation of XYZ, got {order!r}")
-    if parents.shape != (J,) or offsets.shape != (J, 3) or rotations.shape != (T, J, 4) \
-            or root_positions.shape != (T, 3):
-        raise ValueError(f"{J} names but parents {parents.shape}, offsets {offsets.shape} (J,3), "
-                         f"rotations {rotations.shape} (T,J,4), root_positions {root_positions.shape} (T,3)")
-    bad = [n for n in names if not n.strip() or any(c in n for c in "{}\r\n")]
-    if bad or len(set(names)) != J or not (math.isfinite(fps) and fps > 0) or (parents < 0).sum() != 1:
-        raise ValueError(f"need distinct joint names without braces or newlines (bad: {bad}), fps > 0 "
-                         f"(got {fps}) and exactly one root (parent -1)")
-    children = [np.flatnonzero(parents == j).tolist() for j in range(J)]
-    rot_ch, fmt, end_sites = " ".join(f"{a}rotation" for a in order), "%.6f", end_sites or {}
-    lines, written = ["HIERARCHY"], []
-
-    def emit(j, pad):
-        root = parents[j] < 0
-        lines.extend([f"{pad}{'ROOT' if root else 'JOINT'} {names[j]}", f"{pad}{{",
-                      f"{pad}\tOFFSET " + " ".join(fmt % v for v in offsets[j]),
-                      f"{pad}\tCHANNELS " + ("6 Xposition Yposition Zposition " if root else "3 ") + rot_ch])
-        written.append(j)
-        for c in children[j]:
-            emit(c, pad + "\t")
-        if not children[j]:
-            end = np.asarray(end_sites.get(j, np.zeros(3)), dtype=np.float64).reshape(3)
-            lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET " + " ".join(fmt % v for v in end),
-                          f"{pad}\t}}"])
-        lines.append(f"{pad}}}")
-
-    emit(int(np.flatnonzero(parents < 0)[0]), "")
-    if len(written) != J:
-        raise ValueError("parents do not form one tree reaching every joint")
-    table = np.concatenate([root_positions, quat_to_euler(rotations[:, written], order).reshape(T, -1)], axis=1)
-    lines += ["MOTION", f"Frames: {T}", f"Frame Time: {1.0 / fps:.8f}"]
-    row = " ".join([fmt] * table.shape[1])
-    lines += [row % tuple(r) for r in table.tolist()]
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:  # readers never see a half-written file
-        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
-            f.write("\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)

@@ -1,4 +1,4 @@
-"""``motok export bvh``: a clip of any motion artifact as a standard BVH.
+"""``motok export bvh``: a clip of any motion artifact as a standard BVH, and the BVH writer.
 
 HumanML3D's local rotations are per bone (siblings under one joint rotate independently),
 which BVH cannot say: a BVH joint has one rotation that moves all of its children rigidly.
@@ -18,13 +18,14 @@ round-off; the test checks < 1 mm after a write/parse round trip.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
-from motok.data.bvh import write_bvh
+from motok.atomic import atomic_path
 from motok.data.skeleton import Skeleton
-from motok.rotations import matrix_to_quat, qbetween, qinv, qmul, qrot
+from motok.rotations import matrix_to_quat, qbetween, qinv, qmul, qrot, quat_to_euler
 
 
 def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -93,3 +94,53 @@ def export_bvh(path: str | Path, joints: np.ndarray, skeleton: Skeleton, offsets
     write_bvh(path, list(skeleton.joints), skeleton.parents, rest * units, local, joints[:, 0] * units, fps,
               order=order, end_sites={k: v * units for k, v in ends.items()})
     return Path(path)
+
+
+def write_bvh(path, names, parents, offsets, rotations, root_positions, fps, order="ZXY",
+              end_sites=None) -> None:
+    """Write BVH as Blender's importer reads it: one keyword per line, braces on their own lines,
+    6 channels on the root, 3 rotation channels elsewhere (so non-root translations are the
+    ``offsets``), an End Site on every leaf (``end_sites[j]``, else a zero offset). ``rotations``
+    are local quaternions ``(T, J, 4)``; ``root_positions`` is ``(T, 3)``."""
+    names = [str(n) for n in names]
+    parents = np.asarray(parents, dtype=np.int64)
+    offsets, rotations = np.asarray(offsets, dtype=np.float64), np.asarray(rotations, dtype=np.float64)
+    root_positions = np.asarray(root_positions, dtype=np.float64)
+    J, T, order = len(names), len(rotations), str(order).upper()
+    if sorted(order) != ["X", "Y", "Z"]:
+        raise ValueError(f"order must be a permutation of XYZ, got {order!r}")
+    if parents.shape != (J,) or offsets.shape != (J, 3) or rotations.shape != (T, J, 4) \
+            or root_positions.shape != (T, 3):
+        raise ValueError(f"{J} names but parents {parents.shape}, offsets {offsets.shape} (J,3), "
+                         f"rotations {rotations.shape} (T,J,4), root_positions {root_positions.shape} (T,3)")
+    bad = [n for n in names if not n.strip() or any(c in n for c in "{}\r\n")]
+    if bad or len(set(names)) != J or not (math.isfinite(fps) and fps > 0) or (parents < 0).sum() != 1:
+        raise ValueError(f"need distinct joint names without braces or newlines (bad: {bad}), fps > 0 "
+                         f"(got {fps}) and exactly one root (parent -1)")
+    children = [np.flatnonzero(parents == j).tolist() for j in range(J)]
+    rot_ch, fmt, end_sites = " ".join(f"{a}rotation" for a in order), "%.6f", end_sites or {}
+    lines, written = ["HIERARCHY"], []
+
+    def emit(j, pad):
+        root = parents[j] < 0
+        lines.extend([f"{pad}{'ROOT' if root else 'JOINT'} {names[j]}", f"{pad}{{",
+                      f"{pad}\tOFFSET " + " ".join(fmt % v for v in offsets[j]),
+                      f"{pad}\tCHANNELS " + ("6 Xposition Yposition Zposition " if root else "3 ") + rot_ch])
+        written.append(j)
+        for c in children[j]:
+            emit(c, pad + "\t")
+        if not children[j]:
+            end = np.asarray(end_sites.get(j, np.zeros(3)), dtype=np.float64).reshape(3)
+            lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET " + " ".join(fmt % v for v in end),
+                          f"{pad}\t}}"])
+        lines.append(f"{pad}}}")
+
+    emit(int(np.flatnonzero(parents < 0)[0]), "")
+    if len(written) != J:
+        raise ValueError("parents do not form one tree reaching every joint")
+    table = np.concatenate([root_positions, quat_to_euler(rotations[:, written], order).reshape(T, -1)], axis=1)
+    lines += ["MOTION", f"Frames: {T}", f"Frame Time: {1.0 / fps:.8f}"]
+    row = " ".join([fmt] * table.shape[1])
+    lines += [row % tuple(r) for r in table.tolist()]
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as f:
+        f.write("\n".join(lines) + "\n")

@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import uuid
 import warnings
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
+
+from motok.atomic import atomic_path
 
 
 def _is_number(v) -> bool:
@@ -116,11 +117,6 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
         fig.suptitle(title)
     fig.tight_layout()
     out = Path(out_png)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part.png"
-    try:
+    with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return out

@@ -14,13 +14,14 @@ negative azimuth moves the camera towards -X, the character's right.
 
 from __future__ import annotations
 
-import os
-import uuid
 from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
+
+from motok.atomic import atomic_path
+from motok.render.video import gif_stride, write_video
 
 SUFFIXES = (".gif", ".mp4", ".png")
 SS = 2  # supersampling factor
@@ -378,34 +379,6 @@ def render_frames(joints, parents, *, fps: float = 20.0, title: str | None = Non
     return np.stack(list(scene.frames(indices)))
 
 
-def _write_gif(scene: _Scene, path: str) -> None:
-    # Browsers clamp GIF delays under 20 ms, so keep at most 50 frames/s by striding.
-    step = int(np.ceil(scene.fps / 50.0))
-    frames = list(scene.frames(range(0, scene.T, step)))
-    # One shared palette from a sample of frames: per-frame palettes make colours flicker.
-    sample = np.concatenate(frames[:: max(1, len(frames) // 8)][:8], axis=0)[::2, ::2]
-    palette = Image.fromarray(sample).quantize(255, method=Image.Quantize.MEDIANCUT)
-    images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in frames]
-    # GIF delays are whole centiseconds: round the cumulative time so the mean rate is exact.
-    ticks = np.round(np.arange(len(images) + 1) * 100.0 * step / scene.fps)
-    durations = [int(d) * 10 for d in np.maximum(np.diff(ticks), 1)]
-    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], loop=0,
-                   duration=durations if len(images) > 1 else durations[0], optimize=False)
-
-
-def _write_mp4(scene: _Scene, path: str) -> None:
-    import imageio.v2 as imageio
-
-    writer = imageio.get_writer(path, format="FFMPEG", mode="I", fps=scene.fps, codec="libx264",
-                                pixelformat="yuv420p", macro_block_size=1, quality=7,
-                                ffmpeg_log_level="error")
-    try:
-        for frame in scene.frames():
-            writer.append_data(frame)
-    finally:
-        writer.close()
-
-
 def _write_sheet(scene: _Scene, path: str, n: int, title: str | None) -> None:
     idx = np.unique(np.linspace(0, scene.T - 1, max(1, min(n, scene.T))).round().astype(int))
     strip = np.concatenate(list(scene.frames(idx)), axis=1)
@@ -444,18 +417,9 @@ def render_motion(joints, parents, out_path, *, fps: float = 20.0, title: str | 
     scene = _Scene(joints, parents, fps=fps, title=None if sheet_title else title, size=size,
                    trajectory=trajectory, contacts=contacts, foot_joints=foot_joints,
                    max_frames=max_frames, elevation=elevation, azimuth=azimuth, colors=colors)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # Not mkstemp: its 0600 mode would survive the rename; writers create the file normally.
-    tmp = str(out.parent / f".{out.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part{suffix}")
-    try:
-        if suffix == ".gif":
-            _write_gif(scene, tmp)
-        elif suffix == ".mp4":
-            _write_mp4(scene, tmp)
-        else:
+    if suffix == ".png":
+        with atomic_path(out) as tmp:
             _write_sheet(scene, tmp, sheet_frames, sheet_title)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return out
+        return out
+    step = gif_stride(scene.fps) if suffix == ".gif" else 1
+    return write_video(scene.frames(range(0, scene.T, step)), out, scene.fps / step)

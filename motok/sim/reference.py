@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from motok.atomic import atomic_path
 from motok.data.skeleton import Skeleton
 from motok.features.resample import resample_positions, resample_quats
 from motok.rotations import matrix_to_quat, qbetween, qfix, qinv, qmul, qrot, quat_to_euler
@@ -296,10 +297,9 @@ class ReferenceLibrary:
         return clips, frames
 
     def save(self, path: Path) -> None:
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.npz")
-        np.savez(tmp, names=np.array(self.names), fps=self.fps, starts=self.starts, version=LIB_VERSION,
-                 **{k: getattr(self, k).astype(np.float64) for k in self.ARRAYS})
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:  # keeps the .npz suffix, so savez does not append one
+            np.savez(tmp, names=np.array(self.names), fps=self.fps, starts=self.starts, version=LIB_VERSION,
+                     **{k: getattr(self, k).astype(np.float64) for k in self.ARRAYS})
 
     @classmethod
     def from_file(cls, path: Path) -> "ReferenceLibrary":
@@ -375,11 +375,6 @@ def humanoid_for(data_path, cache_dir=None):
     cache = Path(cache_dir) if cache_dir else default_cache_dir()
     path = cache / f"{Path(data_path).stem}-{sha256_file(data_path)[:16]}.xml"
     if not path.exists():
-        cache.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.xml")
-        try:
+        with atomic_path(path) as tmp:
             build_humanoid(data_path, tmp)
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
     return load_humanoid(path)

@@ -8,11 +8,12 @@ did not choose. A ``ghost`` trajectory (the reference) can be drawn as a translu
 
 from __future__ import annotations
 
-import os
+import itertools
 from pathlib import Path
 
 import numpy as np
 
+from motok.render.video import gif_stride, write_video
 from motok.sim.humanoid import Humanoid
 
 SUFFIXES = (".mp4", ".gif")
@@ -73,27 +74,6 @@ def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
     return np.asarray(im)
 
 
-def _write(frames, out: Path, fps: float) -> None:
-    import imageio.v2 as imageio
-
-    tmp = out.with_name(f".{out.stem}.{os.getpid()}.part{out.suffix}")
-    try:
-        if out.suffix == ".mp4":
-            w = imageio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=fps, codec="libx264",
-                                   pixelformat="yuv420p", macro_block_size=1, quality=7, ffmpeg_log_level="error")
-        else:
-            w = imageio.get_writer(str(tmp), format="GIF", mode="I", duration=1000.0 / fps, loop=0)
-        try:
-            for f in frames:
-                w.append_data(f)
-        finally:
-            w.close()
-        os.replace(tmp, out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title: str | None = None,
                       ghost: np.ndarray | None = None, size=(640, 480), backend: str = "auto") -> tuple[Path, str]:
     """Render ``qpos (T, nq)`` to ``out`` (.mp4 or .gif); returns the path and the backend used
@@ -114,7 +94,8 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
             def chain():
                 yield first
                 yield from frames
-            _write(chain(), out, fps)
+            step = gif_stride(fps) if out.suffix.lower() == ".gif" else 1
+            write_video(itertools.islice(chain(), 0, None, step), out, fps / step)
             return out, "mujoco"
     from motok.render.stick import render_motion
     from motok.sim.reference import body_states

@@ -163,6 +163,12 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     strict = json.loads(r.output)  # any body > 0.5 m implies a mean > 0.5 / 21 > 0.02 m: no clip lasts longer
     assert r.exit_code == 0 and strict["overall"]["termination"] == "mean body error > 0.02 m"
     assert all(v["seconds"] <= res["clips"][k]["seconds"] for k, v in strict["clips"].items())
+    monkeypatch.setenv("COLUMNS", "80")  # the table fits a standard terminal: no header or number is cut
+    r = runner.invoke(app, ["control", "expert", "eval", "--run", str(run), "--clips", "dataset-2_walk_normal_00[12]"])
+    assert r.exit_code == 0 and "dataset-2_walk_normal_*" in r.output and "…" not in r.output, r.output
+    rows = [line.split("│")[1:-1] for line in r.output.splitlines() if line.startswith("│")]
+    assert [c.strip() for c in rows[0][:1] + rows[1][:1]] == ["001", "002"] and rows[2][0].strip() == "overall"
+    assert float(rows[0][3]) == pytest.approx(res["clips"]["dataset-2_walk_normal_001"]["mpjpe_mm"], abs=0.05)
     r = runner.invoke(app, ["control", "expert", "train", "--data", str(small_dataset), "--clips", "nope*",
                             "-o", str(tmp_path / "x")])
     assert r.exit_code == 2 and "nope" in r.output

@@ -4,12 +4,14 @@ arguments only; the work is in ``motok.control.expert``."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from motok import progress as _progress
+from motok.atomic import atomic_path
 
 app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP).", no_args_is_help=True)
 expert_app = typer.Typer(help="The hybrid-latent paper's expert policy (appendix B.2).", no_args_is_help=True)
@@ -82,7 +84,8 @@ def eval_cmd(
             raise ValueError(f"{run_dir} does not record its dataset: pass --data")
         names = select_clips(src, clips) if clips else meta["extra"]["clips"]
         res = evaluate(cfg, hum, ac, load_library(hum, src, control_hz=cfg.env.control_hz, clips=names), render)
-        (run_dir / "eval.json").write_text(json.dumps(res, indent=2))
+        with atomic_path(run_dir / "eval.json") as tmp:
+            tmp.write_text(json.dumps(res, indent=2))
         return res
 
     res = _run(go)
@@ -90,17 +93,23 @@ def eval_cmd(
         typer.echo(json.dumps(res, indent=2))
         return
     from rich.table import Table
-    cols = ["success", "seconds", "mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm"]
-    t = Table(title=f"expert eval ({run_dir}); errors in mm, mm/frame, mm/frame^2")
-    t.add_column("clip", no_wrap=True)
-    for c in cols:
-        t.add_column(c.replace("_err_mm", "_err").replace("_mm", ""), justify="right")
-    fmt = lambda v: ("yes" if v else "no") if isinstance(v, bool) else f"{v:.2f}"  # noqa: E731
+    cols = {"success": "ok", "seconds": "time s", "mpjpe_mm": "MPJPE", "g_mpjpe_mm": "G-MPJPE",
+            "root_vel_err_mm": "vel err", "root_acc_err_mm": "acc err"}
+    names = list(res["clips"])
+    # Clip names share a long prefix (dataset-2_walk_normal_...): print it once, in the header.
+    prefix = os.path.commonprefix(names) if len(names) > 1 else ""
+    prefix = prefix[: max(prefix.rfind("_"), prefix.rfind("-")) + 1]
+    t = Table(title=f"expert eval of {run_dir} on {prefix}*; errors in mm, mm/frame, mm/frame^2" if prefix
+              else f"expert eval of {run_dir}; errors in mm, mm/frame, mm/frame^2")
+    t.add_column("clip", no_wrap=True, overflow="ellipsis")
+    for header in cols.values():
+        t.add_column(header, justify="right", no_wrap=True, min_width=len(header))
+    fmt = lambda v: ("yes" if v else "no") if isinstance(v, bool) else f"{v:.1f}"  # noqa: E731
     for name, r in res["clips"].items():
-        t.add_row(name, *[fmt(r[c]) for c in cols])
+        t.add_row(name[len(prefix):], *[fmt(r[c]) for c in cols])
     o = res["overall"]
     t.add_row("[bold]overall", f"{o['success_rate']:.0%}", f"{o['seconds_played']:.1f}",
-              *[f"{o[c]:.2f}" for c in cols[2:]])
+              *[f"{o[c]:.1f}" for c in list(cols)[2:]])
     _progress.console.print(t)
     _progress.info(f"success: {o['termination']} ends a clip; {o['success_rate_any_body']:.0%} also kept every "
                    "single body within that distance")

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from motok.render import stick
-from motok.render.plot import plot_curves
+from motok.render.plot import _ema, _interp, plot_curves
 from motok.render.stick import Camera, joint_sides, render_frames, render_motion
 from motok.rotations import euler_to_quat, qmul, qrot
 
@@ -229,6 +229,17 @@ def test_plot_curves_skips_malformed_lines(tmp_path):
     with pytest.raises(ValueError, match="no numeric values"):
         plot_curves([{"iteration": 1, "tag": "x"}], tmp_path / "empty.png")
     assert not (tmp_path / "empty.png").exists()
+
+
+def test_smoothing_is_per_record_so_sparse_metrics_keep_their_shape():
+    w, ys = 0.9, [1.0, 3.0, 2.0, 5.0]
+    dense = [sum(w ** (i - j) * (1 - w) * ys[j] for j in range(i + 1)) / (1 - w ** (i + 1)) for i in range(4)]
+    np.testing.assert_allclose(_ema(ys, w), dense)  # every record: the debiased EMA
+    # logged every 10th record (eval_*): the same EMA with weight w^10, barely smoothed at 0.95^250
+    np.testing.assert_allclose(_ema(ys, w, rows=[0, 10, 20, 30]), _ema(ys, w**10))
+    np.testing.assert_allclose(_ema(ys, 0.95, rows=[0, 250, 500, 750]), ys, rtol=1e-4)
+    # the top axis' map extends past the data with the overall slope instead of clamping
+    np.testing.assert_allclose(_interp([-1.0, 0.5, 1.5, 3.0], [0, 1, 2], [0, 10, 14]), [-7.0, 5.0, 12.0, 21.0])
 
 
 def test_plot_curves_second_axis(tmp_path):

@@ -36,13 +36,31 @@ def read_metrics(path: str | os.PathLike) -> list[dict]:
     return records
 
 
-def _ema(values: Sequence[float], weight: float) -> list[float]:
-    # Debiased like TensorBoard's smoothing, so the curve does not start pinned at the first value.
-    out, acc = [], 0.0
-    for i, v in enumerate(values, 1):
-        acc = weight * acc + (1.0 - weight) * v
-        out.append(acc / (1.0 - weight**i))
+def _ema(values: Sequence[float], weight: float, rows: Sequence[int] | None = None) -> list[float]:
+    """Debiased exponential moving average (TensorBoard's smoothing: the curve does not start
+    pinned at the first value). ``weight`` is per record of the log: a metric logged every
+    K-th record (``rows`` = the record numbers) decays by ``weight ** K`` between its points, so
+    a sparse evaluation curve is smoothed over the same stretch of training as a dense one."""
+    rows = list(range(len(values)) if rows is None else rows)
+    gaps = [max(b - a, 1) for a, b in zip(rows, rows[1:])]
+    out, acc, norm = [], 0.0, 0.0
+    for v, gap in zip(values, gaps[:1] + gaps or [1]):  # the first point stands for one gap too
+        w = weight**gap
+        acc, norm = w * acc + (1.0 - w) * v, w * norm + (1.0 - w)
+        out.append(acc / norm)
     return out
+
+
+def _interp(v, xp: Sequence[float], fp: Sequence[float]):
+    """Piecewise-linear map through the points, extended beyond them with the overall slope:
+    clamping (``np.interp``) would pile the top axis' ticks up at the ends of the data."""
+    import numpy as np
+
+    v, xp, fp = np.asarray(v, dtype=float), np.asarray(xp, dtype=float), np.asarray(fp, dtype=float)
+    slope = (fp[-1] - fp[0]) / (xp[-1] - xp[0]) if xp[-1] > xp[0] else 1.0
+    out = np.interp(v, xp, fp)
+    out = np.where(v < xp[0], fp[0] + (v - xp[0]) * slope, out)
+    return np.where(v > xp[-1], fp[-1] + (v - xp[-1]) * slope, out)
 
 
 def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], out_png: str | os.PathLike,
@@ -51,7 +69,7 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
 
     ``keys`` defaults to every numeric field except ``x``, in first-seen order. ``smooth`` in
-    [0, 1) is an exponential-moving-average weight: the raw curve is drawn faintly behind the
+    [0, 1) is an exponential-moving-average weight per record (see ``_ema``): the raw curve is drawn faintly behind the
     smoothed one. ``logy`` is True for every subplot or a list of keys to draw on a log scale.
     ``x2`` labels a second, top axis with another field that grows with ``x`` (e.g. ``samples``
     below, ``wall_s`` on top), read off by interpolation.
@@ -69,7 +87,7 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     keys = list(keys)
     series = {}
     for k in keys:
-        pts = [(r[x] if _is_number(r.get(x)) else i, r[k]) for i, r in enumerate(records) if _is_number(r.get(k))]
+        pts = [(r[x] if _is_number(r.get(x)) else i, r[k], i) for i, r in enumerate(records) if _is_number(r.get(k))]
         series[k] = pts
     top = None
     if x2:
@@ -98,18 +116,18 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
         if not pts:
             ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="grey")
             continue
-        xs, ys = zip(*pts)
+        xs, ys, rows = zip(*pts)
+        sparse = dict(marker="o", markersize=3) if len(xs) < 60 else {}  # an evaluation every K iterations
         if smooth > 0:
             ax.plot(xs, ys, color="C0", alpha=0.25, linewidth=1)
-            ax.plot(xs, _ema(ys, smooth), color="C0", linewidth=1.6)
+            ax.plot(xs, _ema(ys, smooth, rows), color="C0", linewidth=1.6, **sparse)
         else:
-            ax.plot(xs, ys, color="C0", linewidth=1.4)
+            ax.plot(xs, ys, color="C0", linewidth=1.4, **sparse)
         if k in log_keys and min(ys) > 0:
             ax.set_yscale("log")
         if top is not None:
-            import numpy as np
-            fwd = lambda v, a=top: np.interp(v, a[0], a[1])  # noqa: E731
-            inv = lambda v, a=top: np.interp(v, a[1], a[0])  # noqa: E731
+            fwd = lambda v, a=top: _interp(v, a[0], a[1])  # noqa: E731
+            inv = lambda v, a=top: _interp(v, a[1], a[0])  # noqa: E731
             ax.secondary_xaxis("top", functions=(fwd, inv)).set_xlabel(x2, fontsize=8)
     for ax in axes.flat[len(keys):]:
         ax.set_visible(False)

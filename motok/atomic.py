@@ -14,20 +14,26 @@ import uuid
 from pathlib import Path
 from typing import Iterator
 
+_UMASK = os.umask(0o022)  # read it the only way there is: set and restore
+os.umask(_UMASK)
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` and rename it to ``path`` if the block succeeds.
 
     The temporary name keeps the suffix, because imageio, Pillow and matplotlib choose the
-    format from it, and is hidden (leading dot) and unique per process and call. It is created
-    by the writer, not by ``mkstemp``, whose 0600 mode would survive the rename.
+    format from it, and is hidden (leading dot) and unique per process and call. The file gets
+    the ordinary mode (0666 less the umask) before the rename: some writers (safetensors,
+    ``mkstemp``) create files readable by their owner only, which would make a shared
+    checkpoint unreadable to its recipients.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part{path.suffix}")
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

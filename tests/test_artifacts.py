@@ -54,6 +54,23 @@ def test_atomic_path_replaces_only_on_success_and_keeps_the_suffix(tmp_path, nam
     assert target.read_bytes() == b"first" and [p.name for p in target.parent.iterdir()] == [name]
 
 
+def test_written_files_get_the_ordinary_mode(tmp_path):
+    """safetensors (like mkstemp) creates 0600 files: a checkpoint sent to someone else must stay readable."""
+    import os
+
+    import torch
+    from safetensors.torch import save_file
+
+    umask = os.umask(0o022)
+    os.umask(umask)
+    with atomic_path(tmp_path / "private.bin") as tmp:
+        os.close(os.open(tmp, os.O_CREAT | os.O_WRONLY, 0o600))
+    with atomic_path(tmp_path / "model.safetensors") as tmp:
+        save_file({"w": torch.zeros(2)}, str(tmp))
+    for name in ("private.bin", "model.safetensors"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
+
+
 def test_wrong_kind_and_version_are_named(tmp_path):
     p = tmp_path / "x.h5"
     with write_artifact(p, "motion", _prov()):

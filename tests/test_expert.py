@@ -182,6 +182,9 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     assert o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0 and o["g_mpjpe_mm"] >= o["mpjpe_mm"] * 0.2
     assert all(v["seconds"] > 0 for v in res["clips"].values()) and (tmp_path / "e.gif").exists()
     assert o["success_rate_any_body"] <= o["success_rate"] and o["termination"] == "any body error > 0.5 m"
+    # what was measured: the checkpoint's iteration and hash, and the data's hash
+    assert res["checkpoint"]["iteration"] == 1 and res["checkpoint"]["mjcf_sha256"] == meta["extra"]["mjcf_sha256"]
+    assert res["provenance"]["inputs"][str(small_dataset)] == meta["provenance"]["inputs"][str(small_dataset)]
     r = runner.invoke(app, ["--quiet", "control", "expert", "eval", "--run", str(run), "--clips",
                             "dataset-2_walk_normal_00[12]", "--termination", "mean", "--distance", "0.02", "--json"])
     strict = json.loads(r.output)  # any body > 0.5 m implies a mean > 0.5 / 21 > 0.02 m: no clip lasts longer

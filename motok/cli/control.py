@@ -11,7 +11,6 @@ from typing import Optional
 import typer
 
 from motok import progress as _progress
-from motok.atomic import atomic_path
 
 app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP).", no_args_is_help=True)
 expert_app = typer.Typer(help="The hybrid-latent paper's expert policy (appendix B.2).", no_args_is_help=True)
@@ -69,26 +68,10 @@ def eval_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the full results as JSON."),
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
-    from motok.control.evaluate import evaluate
-    from motok.control.expert import load_expert, select_clips
+    from motok.control.evaluate import evaluate_run
 
-    def go():
-        from motok.sim.reference import load_library
-        cfg, hum, ac, meta = load_expert(run_dir)
-        if termination is not None:
-            cfg.env.termination = termination
-        if distance is not None:
-            cfg.env.termination_distance = distance
-        src = data or meta["extra"].get("data")
-        if not src:
-            raise ValueError(f"{run_dir} does not record its dataset: pass --data")
-        names = select_clips(src, clips) if clips else meta["extra"]["clips"]
-        res = evaluate(cfg, hum, ac, load_library(hum, src, control_hz=cfg.env.control_hz, clips=names), render)
-        with atomic_path(run_dir / "eval.json") as tmp:
-            tmp.write_text(json.dumps(res, indent=2))
-        return res
-
-    res = _run(go)
+    res = _run(evaluate_run, run_dir, data=data, clips=clips, render=render, termination=termination,
+               distance=distance)
     if as_json:
         typer.echo(json.dumps(res, indent=2))
         return

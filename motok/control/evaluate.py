@@ -3,11 +3,15 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 
-from motok.control.expert import ExpertConfig, _t
+from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.atomic import atomic_path
+from motok.control.expert import ExpertConfig, _t, load_expert, select_clips
 from motok.control.networks import ActorCritic
 from motok.sim.env import HumanoidEnv
 from motok.sim.humanoid import Humanoid
@@ -77,3 +81,33 @@ def evaluate(cfg: ExpertConfig, hum: Humanoid, ac: ActorCritic, lib: ReferenceLi
                                           title=f"expert {lib.names[0]}")
         out["video"] = f"{path} ({backend})"
     return out
+
+
+def evaluate_run(run, *, data=None, clips: str | None = None, render=None, termination: str | None = None,
+                 distance: float | None = None) -> dict:
+    """``motok control expert eval``: :func:`evaluate` the checkpoint in ``run`` on its training
+    clips (or the ``clips`` glob of ``data``) and write ``RUN/eval.json`` with the checkpoint it
+    measured (iteration, samples, training wall time, MJCF hash) and provenance, so a number
+    quoted from it can be traced to the weights and data that made it."""
+    from motok.sim.reference import load_library
+
+    run = Path(run)
+    cfg, hum, ac, meta = load_expert(run)
+    if termination is not None:
+        cfg.env.termination = termination
+    if distance is not None:
+        cfg.env.termination_distance = distance
+    src = data or meta["extra"].get("data")
+    if not src:
+        raise ValueError(f"{run} does not record its dataset: pass --data")
+    names = select_clips(src, clips) if clips else meta["extra"]["clips"]
+    res = evaluate(cfg, hum, ac, load_library(hum, src, control_hz=cfg.env.control_hz, clips=names), render)
+    ex = meta["extra"]
+    res["checkpoint"] = {"iteration": ex["iteration"], "samples": ex["samples"],
+                         "wall_s": ex.get("last_metrics", {}).get("wall_s"), "mjcf_sha256": ex["mjcf_sha256"]}
+    prov = Provenance(command=command_line(), config={"run": str(run), "clips": clips, "env": asdict(cfg.env)},
+                      inputs=hash_inputs([src]))
+    res = {"kind": "control-expert-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
+    with atomic_path(run / "eval.json") as tmp:
+        tmp.write_text(json.dumps(res, indent=2))
+    return res

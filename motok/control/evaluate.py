@@ -29,8 +29,9 @@ def eval_metrics(res: dict) -> dict:
 def evaluate(cfg: ExpertConfig, hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, render=None) -> dict:
     """Every clip from its first frame with the mean action, until the clip's end (success) or early
     termination (the env's criterion; ``success_rate_any_body`` also requires every single body to
-    have stayed within the distance, the stricter test). Errors over the frames played: MPJPE (root-relative) and G-MPJPE (global) in mm,
-    root velocity (mm/frame) and acceleration (mm/frame^2) errors from finite differences."""
+    have stayed within the distance, the stricter test). Errors over the frames played: MPJPE
+    (root-relative) and G-MPJPE (global) in mm, root velocity (mm/frame) and acceleration
+    (mm/frame^2) errors from finite differences."""
     N = len(lib)
     env = HumanoidEnv(hum, lib, replace(cfg.env, num_envs=N, max_episode_seconds=1e9, seed=cfg.seed))
     obs, goal = env.reset(clips=np.arange(N), frames=0)

@@ -69,8 +69,8 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
 
     ``keys`` defaults to every numeric field except ``x``, in first-seen order. ``smooth`` in
-    [0, 1) is an exponential-moving-average weight per record (see ``_ema``): the raw curve is drawn faintly behind the
-    smoothed one. ``logy`` is True for every subplot or a list of keys to draw on a log scale.
+    [0, 1) is an exponential-moving-average weight per record (see ``_ema``): the raw curve is
+    drawn faintly behind the smoothed one. ``logy`` is True for every subplot or a list of keys to draw on a log scale.
     ``x2`` labels a second, top axis with another field that grows with ``x`` (e.g. ``samples``
     below, ``wall_s`` on top), read off by interpolation.
     """

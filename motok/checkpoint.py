@@ -40,11 +40,6 @@ def register_kind(kind: str, versions: tuple[int, ...] = (1,)) -> None:
     BUNDLE_KINDS[kind] = versions
 
 
-def _atomic(path: Path, write) -> None:
-    with atomic_path(path) as tmp:
-        write(tmp)
-
-
 def rng_state() -> dict[str, Any]:
     return {
         "torch": torch.get_rng_state(),
@@ -77,14 +72,17 @@ def save_bundle(run: str | Path, kind: str, model_state: dict[str, torch.Tensor]
     run = Path(run)
     run.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in model_state.items()}
-    _atomic(run / "model.safetensors", lambda p: save_file(tensors, str(p)))
+    with atomic_path(run / "model.safetensors") as tmp:
+        save_file(tensors, str(tmp))
     if train_state is not None:
-        _atomic(run / "train_state.pt", lambda p: torch.save(train_state, p))
+        with atomic_path(run / "train_state.pt") as tmp:
+            torch.save(train_state, tmp)
     meta = {
         "kind": kind, "schema_version": schema_version, "provenance": json.loads(provenance.to_json()),
         "config": config, "extra": extra or {}, "model_sha256": sha256_state(tensors),
     }
-    _atomic(run / "bundle.json", lambda p: p.write_text(json.dumps(meta, indent=2, default=str)))
+    with atomic_path(run / "bundle.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=2, default=str))
     return run
 
 

@@ -20,13 +20,13 @@ import numpy as np
 import torch
 
 from motok.config import load_config
-from motok.control.expert import ExpertConfig, ExpertTrainer, select_clips
-from motok.sim.env import HumanoidEnv
+from motok.control.clips import select_clips
+from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp
 from motok.sim.reference import humanoid_for, load_library
 
 
 def env_rate(hum, lib, cfg: ExpertConfig, seconds: float) -> float:
-    env = HumanoidEnv(hum, lib, cfg.env)
+    env = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, cfg.seed)
     env.reset()
     rng = np.random.default_rng(0)
     std = float(np.exp(cfg.net.log_std))

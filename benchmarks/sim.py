@@ -27,12 +27,17 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.sim.humanoid import build_humanoid, load_humanoid  # before mujoco (sets MUJOCO_GL when headless)
-from motok.sim.env import EnvConfig, HumanoidEnv  # noqa: E402
-from motok.sim.reference import load_library  # noqa: E402
+import mujoco
+from mujoco import rollout
 
-import mujoco  # noqa: E402
-from mujoco import rollout  # noqa: E402
+from motok.control.expert import imitation_mdp
+from motok.control.mdp.actions import ActionConfig
+from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.sim.env import SimConfig
+from motok.sim.humanoid import load_humanoid
+from motok.sim.mjcf import build_humanoid
+from motok.sim.reference import load_library
 
 
 def _dataset(tmp: Path) -> Path:
@@ -48,20 +53,22 @@ def _dataset(tmp: Path) -> Path:
     return out
 
 
-def _pd(env: HumanoidEnv) -> np.ndarray:
-    L = env.lib
-    g = np.minimum(L.starts[env.clip] + env.frame + 1, L.starts[env.clip + 1] - 1)
-    return L.qpos[g][:, env.hinge_adr] - env.qpos[:, env.hinge_adr]
+def _pd(mdp: TaskEnv) -> np.ndarray:
+    """Residual actions on the current pose that send the PD targets to the next reference frame."""
+    env = mdp.env
+    return mdp.task.next_reference()[0][:, env.hinge_adr] - env.qpos[:, env.hinge_adr]
 
 
 def run_env(hum, lib, n: int, stepper: str, seconds: float, record: list | None = None) -> tuple[float, float]:
     """Control steps per second (env-steps/s = this x n), and the CPU seconds per control step the
     calling thread spends outside the stepper's physics call (observation, goal, reward, resets,
     bookkeeping). Thread CPU time, unlike wall time, does not count time lost to other processes."""
-    env = HumanoidEnv(hum, lib, EnvConfig(num_envs=n, nthread=2, stepper=stepper, seed=0))
-    env.reset()
+    mdp = imitation_mdp(hum, lib, SimConfig(num_envs=n, nthread=2, stepper=stepper), ImitationTaskConfig(),
+                        ActionConfig("current"), 0)
+    env = mdp.env
+    mdp.reset()
     for _ in range(5):
-        env.step(_pd(env))
+        mdp.step(_pd(mdp))
     inner, physics = env.stepper.step, [0.0]
 
     def timed(ctrl):
@@ -73,14 +80,14 @@ def run_env(hum, lib, n: int, stepper: str, seconds: float, record: list | None 
     env.stepper.step = timed
     steps, t0, c0 = 0, time.perf_counter(), time.thread_time()
     while time.perf_counter() - t0 < seconds:
-        a = _pd(env)
+        a = _pd(mdp)
         if record is not None:
             q = env.qpos[:, env.hinge_adr]
             record.append((env.qpos.copy(), env.qvel.copy(), np.clip(q + a, env.ctrl_low, env.ctrl_high)))
-        _, _, _, term, trunc, _ = env.step(a)
+        _, _, _, term, trunc, _ = mdp.step(a)
         done = np.flatnonzero(term | trunc)
         if len(done):
-            env.reset(done)
+            mdp.reset(done)
         steps += 1
     return steps / (time.perf_counter() - t0), (time.thread_time() - c0 - physics[0]) / steps
 

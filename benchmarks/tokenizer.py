@@ -21,8 +21,8 @@ from pathlib import Path
 import torch
 
 from motok.config import load_config
-from motok.tokenizer.model import VQVAE
-from motok.tokenizer.train import TrainConfig, make_optimizer, vqvae_loss
+from motok.tokenizer.model import VQVAE, vqvae_loss
+from motok.tokenizer.train import TrainConfig, make_optimizer
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes" / "tokenizer"
 FPS = 20.0

@@ -24,6 +24,7 @@ import numpy as np
 
 from motok import __version__
 from motok.atomic import atomic_path
+from motok.errors import MotokError
 
 # kind -> schema versions this build reads. The first entry is what it writes.
 KINDS: dict[str, tuple[int, ...]] = {
@@ -34,7 +35,7 @@ KINDS: dict[str, tuple[int, ...]] = {
 }
 
 
-class ArtifactError(ValueError):
+class ArtifactError(MotokError, ValueError):
     pass
 
 

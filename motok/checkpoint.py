@@ -28,11 +28,12 @@ from safetensors.torch import load_file, save_file
 
 from motok.artifacts import Provenance
 from motok.atomic import atomic_path
+from motok.errors import MotokError
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
 
 
-class CheckpointError(ValueError):
+class CheckpointError(MotokError, ValueError):
     pass
 
 

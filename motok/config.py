@@ -16,10 +16,12 @@ from typing import Any, TypeVar
 
 import yaml
 
+from motok.errors import MotokError
+
 T = TypeVar("T")
 
 
-class ConfigError(ValueError):
+class ConfigError(MotokError, ValueError):
     pass
 
 

@@ -1,5 +1,10 @@
 """One place for progress bars: rich bars with rates, silenced by ``--quiet`` or when not a TTY
-in CI logs (where a bar would spam), so every long loop gets the same look."""
+in CI logs (where a bar would spam), so every long loop gets the same look.
+
+What is shown is decided in one place: :func:`configure` (the CLI calls it with ``--quiet``;
+library users may too), the ``MOTOK_NO_PROGRESS`` environment variable (any value: no bars,
+for scripts and torchrun workers) and whether stderr is a terminal.
+"""
 
 from __future__ import annotations
 
@@ -10,12 +15,20 @@ from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskProgressColumn, TextColumn,
                            TimeElapsedColumn, TimeRemainingColumn)
 
-QUIET = False  # set by the CLI's --quiet
 console = Console(stderr=True)
+_quiet = False
+
+
+def configure(*, quiet: bool) -> None:
+    """``quiet=True``: no progress bars and no :func:`info` chatter for the rest of the process.
+    Results (tables, JSON) are still printed; errors always are."""
+    global _quiet
+    _quiet = bool(quiet)
 
 
 def enabled() -> bool:
-    return not QUIET and os.environ.get("MOTOK_NO_PROGRESS") is None and sys.stderr.isatty()
+    """Whether bars are drawn: not quiet, no ``MOTOK_NO_PROGRESS``, and stderr is a terminal."""
+    return not _quiet and os.environ.get("MOTOK_NO_PROGRESS") is None and sys.stderr.isatty()
 
 
 class _Rate(TextColumn):
@@ -39,5 +52,6 @@ def make_progress(unit: str = "it", extra: str = "") -> Progress:
 
 
 def info(msg: str) -> None:
-    if not QUIET:
+    """A line of chatter on stderr (what was written where), silenced by ``quiet``."""
+    if not _quiet:
         console.print(msg)

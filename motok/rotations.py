@@ -126,6 +126,21 @@ def matrix_to_quat(m: np.ndarray) -> np.ndarray:
     return q * np.where(q[..., :1] < 0, -1.0, 1.0)
 
 
+def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rotations ``R (F, 3, 3)`` minimising ``sum_k |R src_k - dst_k|^2``; src ``(K, 3)``, dst ``(F, K, 3)``.
+
+    Kabsch's algorithm (Kabsch 1976; numpy only): with ``H = sum_k src_k dst_k^T = U S V^T``,
+    ``R = V diag(1, 1, d) U^T``, where ``d = sign det(V U^T)`` keeps ``R`` a rotation rather than
+    a reflection when the point sets are (near-)planar or noisy.
+    """
+    h = np.einsum("ki,fkj->fij", src, dst)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", vt, u)))
+    fix = np.ones(u.shape[:-1])
+    fix[:, -1] = d
+    return np.einsum("fji,fj,fkj->fik", vt, fix, u)
+
+
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 
 

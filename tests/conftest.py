@@ -7,7 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from motok.cli.common import choose_mujoco_gl
 from motok.data.root import resolve_data_root
+
+choose_mujoco_gl()  # as the motok command does, before any test module imports mujoco
 
 
 @pytest.fixture(scope="module")
@@ -107,3 +110,28 @@ def small_dataset(tmp_path_factory, bandai_slice, bandai_dir) -> Path:
                            pattern=SLICE_PATTERN, skeleton="bandai21")
     preprocess(cfg, out, command="pytest small_dataset")
     return out
+
+
+@pytest.fixture(scope="session")
+def hum_path(small_dataset, tmp_path_factory) -> Path:
+    """The MuJoCo humanoid built from the walk_normal slice (one build per test session)."""
+    from motok.sim.mjcf import build_humanoid
+
+    path = tmp_path_factory.mktemp("humanoid") / "humanoid.xml"
+    build_humanoid(small_dataset, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def hum(hum_path):
+    from motok.sim.humanoid import load_humanoid
+
+    return load_humanoid(hum_path)
+
+
+@pytest.fixture(scope="session")
+def lib(hum, small_dataset, tmp_path_factory):
+    """Every clip of the walk_normal slice as a reference library, cached in the test session only."""
+    from motok.sim.reference import load_library
+
+    return load_library(hum, small_dataset, cache_dir=tmp_path_factory.mktemp("reference-cache"))

@@ -264,8 +264,8 @@ def test_t2m_rows_json_and_markdown(tiny_evaluator, labelled_dataset, tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_tokenizer(labelled_dataset, tmp_path_factory) -> Path:
+    from motok.quantize.base import QuantizerConfig
     from motok.tokenizer.model import ModelConfig
-    from motok.tokenizer.quantize import QuantizerConfig
     from motok.tokenizer.train import TrainConfig, train
     run = tmp_path_factory.mktemp("eval-tok") / "tok"
     cfg = TrainConfig(model=ModelConfig(width=32, depth=1), quantizer=QuantizerConfig(codebook_size=32, dim=16),

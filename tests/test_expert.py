@@ -12,21 +12,15 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from motok.control.expert import (ExpertConfig, ExpertTrainer, ImitationConfig, env_imitation_reward,
-                                  imitation_errors, imitation_reward, train)
-from motok.sim.env import HumanoidEnv
-from motok.sim.humanoid import build_humanoid, load_humanoid
+from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp, train
+from motok.control.mdp.actions import ActionConfig
+from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
+from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.sim.env import SimConfig
 from motok.sim.reference import ReferenceLibrary, body_states, load_library
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-@pytest.fixture(scope="module")
-def hum(small_dataset, tmp_path_factory):
-    path = tmp_path_factory.mktemp("expert-hum") / "humanoid.xml"
-    build_humanoid(small_dataset, path)
-    return load_humanoid(path)
 
 
 @pytest.fixture(scope="module")
@@ -84,10 +78,18 @@ def test_imitation_reward_terms_against_hand_values():
 
 
 def test_imitation_reward_is_one_on_the_reference(hum, walk_lib):
-    env = HumanoidEnv(hum, walk_lib)
-    env.reset(clips=[0, 1, 2] * 5 + [0], frames=[3] * 16)
-    r = env_imitation_reward(env, ImitationConfig())
-    assert r["r_im"].min() > 0.99  # only the root, lifted out of the floor on reset (2 cm here), is off
+    """Eq. 10 after one step of PD tracking (zero residual on the reference) is close to 1."""
+    mdp = imitation_mdp(hum, walk_lib, SimConfig(num_envs=16), ImitationTaskConfig(), ActionConfig("reference"), 0)
+    mdp.reset(clips=[0, 1, 2] * 5 + [0], frames=[3] * 16)
+    t = mdp.task
+    L = walk_lib
+    g = L.frame_index(t.clip, t.frame)
+    env = mdp.env
+    err = imitation_errors(env.bodies.pos, L.body_pos[g], env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:],
+                           L.qvel[g, 6:], env.end_effectors)
+    assert imitation_reward(err, ImitationConfig())["r_im"].min() > 0.99  # only the root, lifted on reset, is off
+    _, _, r, term, _, _ = mdp.step(np.zeros((16, env.action_dim)))
+    assert r["r_im"].min() > 0.5 and not term.any()
 
 
 def test_short_ppo_run_raises_the_return_of_standing_still(hum):
@@ -97,8 +99,8 @@ def test_short_ppo_run_raises_the_return_of_standing_still(hum):
     cancel them. 48 iterations of 16 envs x 32 steps (25k samples): the mean episode return of
     the last 5 iterations is 2.1x the first 5 (at 32 iterations: 1.4x-2.8x over seeds 0-4)."""
     cfg = small_cfg(iterations=48, w_im=1.0, w_style=0.0)
-    cfg.env.num_envs, cfg.env.max_episode_seconds, cfg.env.nthread = 16, 3.0, 1
-    cfg.env.action_base, cfg.env.termination = "reference", "mean"
+    cfg.env.num_envs, cfg.task.max_episode_seconds, cfg.env.nthread = 16, 3.0, 1
+    cfg.action.base, cfg.task.termination = "reference", "mean"
     cfg.ppo.horizon, cfg.ppo.minibatch_size, cfg.ppo.lr = 32, 128, 3e-4
     cfg.net.log_std, cfg.amp.enabled = math.log(0.055), False
     tr = ExpertTrainer(cfg, hum, standing_library(hum))
@@ -118,7 +120,7 @@ def test_short_ppo_run_raises_the_return_of_standing_still(hum):
 def test_expert_loop_on_a_standing_reference_logs_its_metrics(hum, tmp_path):
     # The loop without AMP, and its log (learning: the test above and test_ppo.py).
     cfg = small_cfg(iterations=3, w_im=1.0, w_style=0.0, eval_every=2)
-    cfg.env.max_episode_seconds, cfg.ppo.horizon = 0.5, 15
+    cfg.task.max_episode_seconds, cfg.ppo.horizon = 0.5, 15
     out = train(cfg, tmp_path / "run", hum, standing_library(hum))
     assert out["iterations"] == 3 and out["samples"] == 3 * 8 * 15
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
@@ -126,7 +128,7 @@ def test_expert_loop_on_a_standing_reference_logs_its_metrics(hum, tmp_path):
     assert ["eval_success" in r for r in rows] == [False, True, False]  # eval_every=2
     assert 0.0 <= rows[1]["eval_success_any_body"] <= rows[1]["eval_success"] <= 1.0 and rows[1]["eval_seconds"] > 0
     for r in rows:
-        assert 0.0 < r["r_im"] <= 1.0 and r["r_style"] == 0.0 and r["samples_per_s"] > 0
+        assert 0.0 < r["r_im"] <= 1.0 and "r_style" not in r and r["samples_per_s"] > 0  # no AMP hook
     done = [r for r in rows if "success" in r]
     assert done and all(0.0 <= r["success"] <= 1.0 and 0.0 < r["episode_seconds"] <= 0.5 for r in done)
     meta = json.loads((tmp_path / "run" / "bundle.json").read_text())
@@ -144,6 +146,18 @@ def test_expert_training_resumes_exactly(hum, walk_lib, tmp_path):
     assert a.keys() == b.keys() and any(k.startswith("disc.") for k in a) and "ac.norm.mean" in a
     for k in a:
         assert torch.equal(a[k], b[k]), k
+    # with difficulty sampling every iteration: its failures survive the resume
+    hard = replace(cfg, sampling=replace(cfg.sampling, hard_fraction=0.7, every=1, eval_batch=2))
+    train(hard, tmp_path / "hard", hum, walk_lib)
+    train(hard, tmp_path / "hard_split", hum, walk_lib, until=2)
+    train(hard, tmp_path / "hard_split", hum, walk_lib, resume=True)
+    h, hs = load_file(tmp_path / "hard" / "model.safetensors"), load_file(tmp_path / "hard_split" / "model.safetensors")
+    assert all(torch.equal(h[k], hs[k]) for k in h)
+    from motok.checkpoint import load_bundle
+    sampler = load_bundle(tmp_path / "hard_split", "control-expert", with_train_state=True)[2]["shared"]["sampler"]
+    assert sampler["measured_at"] == 4 and sampler["failure"].shape == (3,)
+    rows = [json.loads(x) for x in (tmp_path / "hard_split" / "metrics.jsonl").read_text().splitlines()]
+    assert all("train_success" in r and "hard_share" in r for r in rows) and len(rows) == 4
     # evaluation passes in between change nothing of the training (no RNG drawn, no state touched)
     train(replace(cfg, eval_every=1), tmp_path / "evaluated", hum, walk_lib)
     c = load_file(tmp_path / "evaluated" / "model.safetensors")
@@ -196,9 +210,53 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     rows = [line.split("│")[1:-1] for line in r.output.splitlines() if line.startswith("│")]
     assert [c.strip() for c in rows[0][:1] + rows[1][:1]] == ["001", "002"] and rows[2][0].strip() == "overall"
     assert float(rows[0][3]) == pytest.approx(res["clips"]["dataset-2_walk_normal_001"]["mpjpe_mm"], abs=0.05)
+    r = runner.invoke(app, ["--quiet", "control", "expert", "eval", "--run", str(run), "--split", "test", "--json"])
+    assert r.exit_code == 0, r.output
+    test = json.loads((run / "eval_test.json").read_text())
+    from motok.control.clips import select_clips
+    names = select_clips(small_dataset, None, "test")
+    assert sorted(test["clips"]) == sorted(names) and test["groups"]["content"]["walk"]["clips"] == len(names)
+    assert test["groups"]["style"]["normal"]["success_rate"] == test["overall"]["success_rate"]
     r = runner.invoke(app, ["control", "expert", "train", "--data", str(small_dataset), "--clips", "nope*",
                             "-o", str(tmp_path / "x")])
     assert r.exit_code == 2 and "nope" in r.output
+    r = runner.invoke(app, ["control", "expert", "eval", "--run", str(run), "--split", "tets"])
+    assert r.exit_code == 2 and "no split 'tets'" in r.output
+
+
+def test_torchrun_two_ranks_keep_identical_weights(small_dataset, hum, tmp_path):
+    """Each rank steps its own environments (its own task and AMP streams); gradients, the KL
+    early stop and the normaliser are averaged, so both ranks hold the same weights throughout."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from motok.checkpoint import load_bundle
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("iterations: 3\nsave_every: 2\nenv: {num_envs: 4, nthread: 1}\nppo: {horizon: 8, minibatch_size: 16}\n"
+                      "net: {encoder: [32], decoder: [32], value: [32]}\n"
+                      "amp: {hidden: [16], batch_size: 16, updates: 1, replay_size: 64}\n")
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+           "--master_port", str(port), "-m", "motok.cli.main", "-q", "control", "expert", "train",
+           "--data", str(small_dataset), "--clips", "dataset-2_walk_normal_00[1-4]", "--recipe", str(recipe),
+           "--humanoid", str(hum.path), "-o", str(run)]
+    env = {**os.environ, "MOTOK_NO_PROGRESS": "1", "OMP_NUM_THREADS": "1", "MOTOK_CACHE": str(tmp_path / "cache")}
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-4000:]
+    meta, state, ts = load_bundle(run, "control-expert", with_train_state=True)
+    hashes = meta["extra"]["rank_state_sha256"]
+    assert len(hashes) == 2 and hashes[0] == hashes[1] == meta["model_sha256"]
+    assert meta["extra"]["world_size"] == 2 and ts["world_size"] == 2 and ts["shared"]["iteration"] == 3
+    assert meta["extra"]["samples"] == 3 * 2 * 4 * 8  # both ranks' samples
+    a, b = ts["ranks"]
+    assert a["task_rng"] != b["task_rng"] and not torch.equal(a["replay"]["data"], b["replay"]["data"])
+    assert [json.loads(x)["iteration"] for x in (run / "metrics.jsonl").read_text().splitlines()] == [1, 2, 3]
 
 
 def test_control_recipes_load_with_their_measured_choices():
@@ -208,6 +266,6 @@ def test_control_recipes_load_with_their_measured_choices():
     root = Path(__file__).resolve().parent.parent / "recipes" / "control"
     small, paper = (load_config(ExpertConfig, root / f"{n}.yaml") for n in ("expert", "expert_paper"))
     for cfg in (small, paper):
-        assert cfg.env.action_base == "reference" and cfg.env.termination == "mean" and cfg.eval_every > 0
+        assert cfg.action.base == "reference" and cfg.task.termination == "mean" and cfg.eval_every > 0
         assert (cfg.w_im, cfg.w_style) == (0.5, 0.5) and cfg.ppo.gamma == 0.99 and cfg.ppo.lam == 0.95
     assert paper.env.num_envs >= 4096 > small.env.num_envs

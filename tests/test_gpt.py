@@ -142,8 +142,8 @@ def test_paper_recipe_is_the_paper_size():
 @pytest.fixture(scope="session")
 def tiny_tokens(tmp_path_factory, small_dataset):
     """A 10-iteration tokenizer on the walk_normal slice and its tokens artifact (with captions)."""
+    from motok.quantize.base import QuantizerConfig
     from motok.tokenizer.model import ModelConfig
-    from motok.tokenizer.quantize import QuantizerConfig
     from motok.tokenizer.tokens import encode
     from motok.tokenizer.train import TrainConfig as TokConfig
     from motok.tokenizer.train import train as train_tokenizer

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from motok.control.amp import AMP, AMPConfig, ReplayBuffer, gradient_penalty, style_reward
-from motok.control.networks import EncoderDecoderPolicy, RunningNorm
+from motok.control.networks import RunningNorm
+from motok.control.policies import EncoderDecoderPolicy
 from motok.control.ppo import PPOConfig, Rollout, gae, learning_rate, policy_loss, value_loss
 
 
@@ -20,7 +21,7 @@ def test_gae_three_steps_with_termination_and_truncation():
     # One env: step 0 mid-episode, step 1 truncated (time limit: bootstrap from V(final obs) = 4),
     # step 2 terminated (no future at all, so the last value 9 must not leak in).
     g, lam = 0.9, 0.8
-    ro = Rollout(3, 1, 2, 1)
+    ro = Rollout(3, 1, 2, (1,))
     ro.rewards[:, 0] = torch.tensor([1.0, 2.0, 3.0])
     ro.values[:, 0] = torch.tensor([0.5, 1.0, 1.5])
     ro.truncated[1, 0], ro.terminated[2, 0] = True, True
@@ -164,7 +165,8 @@ def test_short_ppo_run_raises_the_return_of_a_stand_still_task():
 
 
 def _stand_still():
-    from motok.control.networks import ActorCritic, MLPPolicy, ValueNet
+    from motok.control.networks import ActorCritic, ValueNet
+    from motok.control.policies import MLPPolicy
     from motok.control.ppo import PPO
 
     torch.manual_seed(0)
@@ -175,7 +177,7 @@ def _stand_still():
     ppo = PPO(ac, PPOConfig(horizon=T, lr=3e-3, epochs=4, minibatch_size=160), 20)
     lengths, ep = [], np.zeros(N)
     for it in range(20):
-        ro, done_len = Rollout(T, N, 2, 1), []
+        ro, done_len = Rollout(T, N, 2, (1,)), []
         for t in range(T):
             x = torch.as_tensor(env.obs(), dtype=torch.float32)
             ac.norm.update(x)

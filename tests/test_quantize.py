@@ -1,5 +1,6 @@
-"""Quantizers: assignment, straight-through gradients, EMA and reset updates, residual VQ,
-FSQ, statistics, and codebooks staying identical across two distributed ranks."""
+"""Quantizers (motok.quantize): assignment, straight-through gradients, EMA and reset updates,
+residual VQ, FSQ, statistics, per-item (B, D) latents, construction order, and codebooks staying
+identical across two distributed ranks."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from motok.config import from_dict
-from motok.tokenizer.quantize import QuantizerConfig, build_quantizer
+from motok.quantize.base import QuantizerConfig
+from motok.quantize.registry import build_quantizer
 
 CODEBOOK_KINDS = ["vq", "ema", "reset", "ema_reset", "rvq"]
 
@@ -363,6 +365,136 @@ def test_state_round_trips_through_safetensors(kind, tmp_path):
     fresh = make(kind, seed=123)
     fresh.load_state_dict(load_file(str(tmp_path / "q.safetensors")))
     assert torch.equal(fresh.eval().encode(z), q.eval().encode(z))
+
+
+# --- per-item latents (B, D) --------------------------------------------------------------
+
+ALL_KINDS = {
+    "vq": dict(kind="vq"),
+    "ema": dict(kind="ema"),
+    # threshold 1.5 with 16 codes for 12 rows: codes die every step, so resets are exercised.
+    "reset": dict(kind="reset", reset_window=2, reset_threshold=1.5),
+    "ema_reset": dict(kind="ema_reset", kmeans_init=True, reset_threshold=1.5),
+    "rvq": dict(kind="rvq", num_codebooks=3, quantizer_dropout=0.5),
+    "fsq": dict(kind="fsq", fsq_levels=[4, 3, 3]),
+}
+
+
+def twins(kw, seed=10):
+    """Two quantizers with the same initial state: one fed (B, D), one (B, D, 1)."""
+    out = []
+    for _ in range(2):
+        torch.manual_seed(seed)
+        out.append(build_quantizer(QuantizerConfig(codebook_size=16, dim=8, **kw)).train())
+    return out
+
+
+@pytest.mark.parametrize("name", list(ALL_KINDS))
+def test_per_item_latents_equal_length_one_sequences(name):
+    flat, seq = twins(ALL_KINDS[name])
+    g = torch.Generator().manual_seed(11)
+    params_f, params_s = list(flat.parameters()), list(seq.parameters())
+    resets = 0
+    for _ in range(8):
+        z = 2 * torch.randn(12, 8, generator=g)
+        z2, z3 = z.clone().requires_grad_(), z[..., None].clone().requires_grad_()
+        a, b = flat(z2), seq(z3)
+        assert a.z_q.shape == (12, 8) and a.indices.shape == (12, flat.num_codebooks)
+        assert torch.equal(a.z_q, b.z_q[..., 0]) and torch.equal(a.indices, b.indices[:, 0])
+        assert a.losses.keys() == b.losses.keys()
+        assert all(torch.equal(a.losses[k], b.losses[k]) for k in a.losses)
+        assert a.stats == b.stats
+        resets += sum(a.stats["dead"])
+        w = torch.randn(12, 8, generator=g)
+        for out, w_ in ((a, w), (b, w[..., None])):
+            ((out.z_q * w_).sum() + out.losses["commit"] + out.losses["codebook"]).backward()
+        assert torch.equal(z2.grad, z3.grad[..., 0])
+        for pf, ps in zip(params_f, params_s):
+            assert torch.equal(pf.grad, ps.grad)
+            pf.grad = ps.grad = None
+        sf, ss = flat.state_dict(), seq.state_dict()
+        assert all(torch.equal(sf[k], ss[k]) for k in sf)
+    if name in ("reset", "ema_reset"):
+        assert resets > 0
+    flat.eval(), seq.eval()
+    z = torch.randn(5, 8, generator=g)
+    idx = flat.encode(z)
+    assert idx.shape == (5, flat.num_codebooks) and torch.equal(idx, seq.encode(z[..., None])[:, 0])
+    assert torch.equal(flat.decode(idx), seq.decode(idx[:, None])[..., 0])
+    assert torch.equal(flat.decode(idx), flat(z).z_q)
+    for m in range(1, flat.num_codebooks + 1):
+        part = flat.encode(z, num_codebooks=m)
+        assert torch.equal(part, seq.encode(z[..., None], num_codebooks=m)[:, 0])
+        assert torch.equal(flat.decode(part[:, :m]), flat(z, num_codebooks=m).z_q)
+
+
+@pytest.mark.parametrize("kind", CODEBOOK_KINDS)
+def test_straight_through_reaches_per_item_latents_exactly(kind):
+    q = make(kind).train()
+    random_codebooks(q)
+    books = q.codebooks().clone()
+    z = torch.randn(6, q.dim, requires_grad=True)
+    out = q(z)
+    expect = sum(books[i][out.indices[:, i]] for i in range(out.stats["num_active_codebooks"]))
+    assert torch.equal(out.z_q, expect)
+    w = torch.randn_like(out.z_q)
+    (out.z_q * w).sum().backward()
+    assert torch.equal(z.grad, w)
+
+
+def test_fsq_straight_through_skips_only_the_rounding():
+    # dim == len(levels): no projections, so z_q = round(tanh(z) * h) / h and the estimator
+    # gives dz_q/dz = 1 - tanh(z)^2, the derivative of the bound alone.
+    q = build_quantizer(QuantizerConfig(kind="fsq", dim=3, fsq_levels=[2, 3, 4])).train()
+    z = torch.randn(7, 3, requires_grad=True)
+    out = q(z)
+    h = (q.levels.float() - 1) / 2
+    shift = (1 - q.levels % 2).float() / 2
+    expect = (torch.round(torch.tanh(z.detach()) * h - shift) + shift) / h
+    assert torch.allclose(out.z_q, expect, atol=1e-7)
+    w = torch.randn_like(out.z_q)
+    (out.z_q * w).sum().backward()
+    assert torch.allclose(z.grad, w * (1 - torch.tanh(z.detach()) ** 2), atol=1e-6)
+
+
+def test_per_item_latents_under_autocast_and_bad_shapes():
+    q = make("ema", K=64, D=16).eval()
+    random_codebooks(q)
+    z = torch.randn(32, 16, generator=torch.Generator().manual_seed(12))
+    expect = brute_force(z, list(q.codebooks()))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = q(z)
+    assert torch.equal(out.indices, expect) and out.z_q.dtype == torch.float32
+    for kind in ALL_KINDS:
+        q = build_quantizer(QuantizerConfig(codebook_size=16, dim=8, **{**ALL_KINDS[kind], "kmeans_init": False}))
+        for bad in (torch.randn(4, 7), torch.randn(4, 8, 2, 1), torch.randn(8)):
+            with pytest.raises(ValueError, match="expected z"):
+                q(bad)
+            with pytest.raises(ValueError, match="expected z"):
+                q.encode(bad)
+        with pytest.raises(ValueError, match="expected indices"):
+            q.decode(torch.zeros(4, dtype=torch.long))
+
+
+# --- construction order -------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", ["vq", "ema_reset", "rvq", "fsq"])
+def test_initial_state_follows_the_documented_draw_order(kind):
+    """Fixed-seed runs (and so every recorded result) depend on the order in which a new
+    quantizer draws from the global RNG: its generator seed, then its codes (per residual
+    layer: seed, then codes), then FSQ's projections."""
+    K, D = 16, 8
+    q = make(kind, K=K, D=D, seed=3)
+    torch.manual_seed(3)
+    assert torch.equal(q.rng_seed, torch.randint(0, 2**62, (1,)))
+    if kind == "fsq":
+        p_in, p_out = torch.nn.Linear(D, 4), torch.nn.Linear(4, D)
+        assert torch.equal(q.project_in.weight, p_in.weight) and torch.equal(q.project_out.bias, p_out.bias)
+        return
+    for layer in layers(q):
+        if layer is not q:
+            assert torch.equal(layer.rng_seed, torch.randint(0, 2**62, (1,)))
+        assert torch.equal(layer.embed, torch.empty(K, D).uniform_(-1.0 / K, 1.0 / K))
 
 
 # --- distributed --------------------------------------------------------------------------

@@ -6,42 +6,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from motok.sim.humanoid import HumanoidError, build_humanoid, load_humanoid, to_mj  # before mujoco: sets MUJOCO_GL
-from motok.sim.env import EnvConfig, HumanoidEnv, pd_track  # noqa: E402
-from motok.sim.obs import Bodies, RewardConfig, TreeKinematics, goal, observation, reward_terms  # noqa: E402
-from motok.sim.reference import ReferenceError, body_states, build_library, load_library  # noqa: E402
+import mujoco
 
-import mujoco  # noqa: E402
+from motok.sim.env import HumanoidEnv, SimConfig
+from motok.sim.humanoid import HumanoidError, load_humanoid, to_mj
+from motok.sim.mjcf import build_humanoid
+from motok.sim.obs import TreeKinematics, observation
+from motok.sim.reference import ReferenceError, body_states, build_library, load_library
 
 runner = CliRunner()
-
-
-@pytest.fixture(scope="module")
-def hum_path(small_dataset, tmp_path_factory):
-    path = tmp_path_factory.mktemp("sim") / "humanoid.xml"
-    build_humanoid(small_dataset, path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def hum(hum_path):
-    return load_humanoid(hum_path)
-
-
-@pytest.fixture(scope="module")
-def lib(hum, small_dataset, tmp_path_factory):
-    return load_library(hum, small_dataset, cache_dir=tmp_path_factory.mktemp("refcache"))
-
-
-def _env(hum, lib, **kw):
-    return HumanoidEnv(hum, lib, EnvConfig(**kw))
-
-
-def _pd_actions(env):
-    """Residual actions that send the PD targets to the next reference frame."""
-    L = env.lib
-    g = np.minimum(L.starts[env.clip] + env.frame + 1, L.starts[env.clip + 1] - 1)
-    return L.qpos[g][:, env.hinge_adr] - env.qpos[:, env.hinge_adr]
 
 
 # ----------------------------------------------------------------------------- humanoid
@@ -129,11 +102,8 @@ def test_reference_cache_is_reused(hum, small_dataset, tmp_path):
 def test_unknown_clips_get_clear_errors(hum, lib, small_dataset, tmp_path):
     with pytest.raises(ReferenceError, match="no clip named 'walk_nope'"):
         load_library(hum, small_dataset, clips=["walk_nope"], cache_dir=tmp_path)
-    env = _env(hum, lib, num_envs=2)
     with pytest.raises(ReferenceError, match="no clip named"):
-        env.reset(clips=["dataset-2_walk_normal_999", 0])
-    with pytest.raises(ValueError, match="no step with 1 reference frames ahead"):
-        env.reset(clips=[0, 0], frames=[0, 10_000])
+        lib.index("dataset-2_walk_normal_999")
 
 
 # ----------------------------------------------------------------------------- kinematics, observations
@@ -150,112 +120,11 @@ def test_numpy_kinematics_match_mujoco(hum, lib):
     assert np.abs(np.abs((mine.quat * ref["body_quat"]).sum(-1)) - 1).max() < 1e-9
 
 
-def _yaw_shift(b: Bodies, yaw: float, shift: np.ndarray) -> Bodies:
-    c, s = np.cos(yaw), np.sin(yaw)
-    r = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    return Bodies(b.pos @ r.T + shift, b.vel @ r.T, b.angvel @ r.T, rot=r @ b.rot)
-
-
-def test_observations_goals_rewards_invariant_to_heading_and_position(hum, lib):
-    fk = TreeKinematics(hum)
-    rng = np.random.default_rng(1)
-    g = rng.integers(0, len(lib.qpos) - 3, 6)
-    q, v = lib.qpos[g].copy(), lib.qvel[g].copy()
-    q[:, 7:] += rng.normal(0, 0.2, q[:, 7:].shape)  # a sim state off its reference
-    sim = fk(q, v)
-    ref = Bodies(lib.body_pos[g + 1][:, None], lib.body_vel[g + 1][:, None], lib.body_angvel[g + 1][:, None],
-                 quat=lib.body_quat[g + 1][:, None])
-    ee = list(hum.skeleton.end_effectors)
-    base = observation(q, v, sim, ee), goal(sim, ref), reward_terms(sim, ref.take((slice(None), 0)), RewardConfig())
-    yaw, shift = 2.1, np.array([3.0, -7.5, 0.0])
-    q2, v2 = q.copy(), v.copy()
-    c, s = np.cos(yaw / 2), np.sin(yaw / 2)
-    from motok.rotations import qmul
-    q2[:, 3:7] = qmul(np.array([c, 0, 0, s]), q[:, 3:7])
-    q2[:, :3] = _yaw_shift(Bodies(q[:, None, :3], q[:, None, :3], q[:, None, :3], rot=np.eye(3)[None, None]),
-                           yaw, shift).pos[:, 0]
-    v2[:, :3] = v[:, :3] @ np.array([[c * c - s * s, 2 * c * s, 0], [-2 * c * s, c * c - s * s, 0], [0, 0, 1]])
-    sim2 = fk(q2, v2)
-    assert np.allclose(sim2.pos, _yaw_shift(sim, yaw, shift).pos)  # the transform is what we think it is
-    ref2 = _yaw_shift(ref, yaw, shift)
-    moved = observation(q2, v2, sim2, ee), goal(sim2, ref2), reward_terms(sim2, ref2.take((slice(None), 0)), RewardConfig())
-    assert np.allclose(base[0], moved[0], atol=1e-9) and np.allclose(base[1], moved[1], atol=1e-9)
-    for k in base[2]:
-        assert np.allclose(base[2][k], moved[2][k])
-    # at the reference itself every difference vanishes and every reward term is 1
-    on_ref = ref.take((slice(None), 0))
-    gz = goal(on_ref, ref).reshape(len(g), -1, 15)
-    assert np.abs(gz[..., :3]).max() < 1e-12 and np.abs(gz[..., 9:]).max() < 1e-12
-    assert np.allclose(gz[..., 3:9], [1, 0, 0, 0, 1, 0])
-    assert np.allclose(reward_terms(on_ref, on_ref, RewardConfig())["total"], 1.0)
-
-
 # ----------------------------------------------------------------------------- environment
-
-def test_same_seed_same_trajectory(hum, lib):
-    def run(seed):
-        env = _env(hum, lib, num_envs=3, seed=seed)
-        obs, _ = env.reset()
-        rng = np.random.default_rng(7)
-        out = [obs]
-        for _ in range(12):
-            obs, gl, r, term, trunc, info = env.step(rng.normal(0, 0.1, (3, env.action_dim)))
-            out.append(np.concatenate([obs, gl, r["total"][:, None]], 1))
-            done = np.flatnonzero(term | trunc)
-            if len(done):
-                env.reset(done)
-        return np.concatenate([o.ravel() for o in out]), env.clip.copy()
-
-    a, b, c = run(5), run(5), run(6)
-    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
-    assert not np.array_equal(a[0][:200], c[0][:200])
-
-
-@pytest.mark.parametrize("stepper", ["batch", "rollout"])
-def test_batch_equals_single_envs(hum, lib, stepper):
-    pytest.importorskip("mujoco.batch") if stepper == "batch" else None
-    clips, frames = [0, 3, 7, 11], [0, 20, 41, 5]
-    batch = _env(hum, lib, num_envs=4, stepper=stepper)
-    batch.reset(clips=clips, frames=frames)
-    singles = [_env(hum, lib, num_envs=1, stepper=stepper) for _ in clips]
-    for e, c, f in zip(singles, clips, frames):
-        e.reset(clips=[c], frames=[f])
-    for _ in range(8):
-        a = _pd_actions(batch)
-        ob, gb, rb, tb, _, _ = batch.step(a)
-        for i, e in enumerate(singles):
-            os_, gs, rs, ts, _, _ = e.step(a[i:i + 1])
-            assert np.array_equal(ob[i], os_[0]) and np.array_equal(gb[i], gs[0])
-            assert rb["total"][i] == rs["total"][0] and tb[i] == ts[0]
-
-
-def test_reference_action_base_offsets_from_the_next_reference_frame(hum, lib):
-    """The reference base is the next frame's angles plus (kv / kp) times its velocities, so the
-    position servo tracks both; zero actions on it are those offsets on the current base (to
-    rounding: ``q + (b - q)`` is not bit-identical to ``b``)."""
-    clips, frames = [0, 5, 9], [3, 30, 60]
-    ref = _env(hum, lib, num_envs=3, action_base="reference")
-    cur = _env(hum, lib, num_envs=3)
-    for e in (ref, cur):
-        e.reset(clips=clips, frames=frames)
-    m, L = hum.model, lib
-    assert np.allclose(ref.velocity_lead, m.actuator_biasprm[:, 2] / m.actuator_biasprm[:, 1])
-    for _ in range(6):
-        g = L.starts[ref.clip] + ref.frame + 1
-        target = L.qpos[g][:, 7:] + ref.velocity_lead * L.qvel[g][:, 6:]  # hinges follow the free joint
-        assert np.allclose(ref.action_base(), target) and np.allclose(cur.action_base(), cur.qpos[:, 7:])
-        a = ref.action_base() - cur.action_base()
-        o1, g1, r1, *_ = ref.step(np.zeros((3, ref.action_dim)))
-        o2, g2, r2, *_ = cur.step(a)
-        assert np.allclose(o1, o2, atol=1e-7) and np.allclose(g1, g2, atol=1e-7)
-        assert np.allclose(r1["total"], r2["total"], atol=1e-7)
-    with pytest.raises(ValueError, match="action_base"):
-        _env(hum, lib, num_envs=1, action_base="target")
-
 
 def test_batch_stepper_is_plain_mujoco(hum, lib):
     pytest.importorskip("mujoco.batch")
-    from motok.sim.env import BatchStepper
+    from motok.sim.steppers import BatchStepper
 
     m, g = hum.model, np.array([10, 500, 2000])
     st = BatchStepper(hum, 3, hum.substeps, nthread=2)
@@ -277,73 +146,38 @@ def test_batch_stepper_is_plain_mujoco(hum, lib):
         assert np.allclose(mine.pos[i], d.xpos[hum.body_ids], atol=1e-12)
 
 
-def test_nan_actions_are_refused_or_contained(hum, lib):
-    env = _env(hum, lib, num_envs=3)
-    env.reset(clips=[0, 1, 2], frames=[10, 10, 10])
-    before = env.qpos.copy()
-    a = _pd_actions(env)
-    bad = a.copy()
-    bad[1, 4] = np.nan
-    with pytest.raises(ValueError, match=r"non-finite actions for environments \[1\]"):
-        env.step(bad)
-    assert np.array_equal(env.qpos, before)  # nothing was stepped
+@pytest.mark.parametrize("stepper", ["batch", "rollout"])
+def test_physics_env_steps_pd_targets_and_contains_bad_ones(hum, lib, stepper):
+    """The environment is physics only: states in, PD targets held for the substeps, Eq. 7 out;
+    a batch equals its environments run one by one; non-finite targets hold that env's pose."""
+    pytest.importorskip("mujoco.batch") if stepper == "batch" else None
+    g = np.array([10, 500, 2000])
+    env = HumanoidEnv(hum, SimConfig(num_envs=3, stepper=stepper, nan_actions="terminate"))
+    singles = [HumanoidEnv(hum, SimConfig(num_envs=1, stepper=stepper)) for _ in g]
+    env.set_state(np.arange(3), lib.qpos[g], lib.qvel[g])
+    for e, i in zip(singles, g):
+        e.set_state([0], lib.qpos[i:i + 1], lib.qvel[i:i + 1])
+    assert env.obs_dim == env.observation().shape[1] == 1 + 6 + 3 + 3 + 2 * env.action_dim + 3 * len(env.end_effectors)
+    for t in range(4):
+        targets = lib.qpos[g + t + 1][:, env.hinge_adr]
+        diverged, invalid = env.step(targets)
+        assert not diverged.any() and not invalid.any()
+        for k, e in enumerate(singles):
+            e.step(targets[k:k + 1])
+            assert np.array_equal(env.observation()[k], e.observation()[0])
+    obs = env.observation()
+    assert np.allclose(obs, observation(env.qpos, env.qvel, TreeKinematics(hum)(env.qpos, env.qvel),
+                                        env.end_effectors), atol=1e-9)
+    bad = lib.qpos[g + 5][:, env.hinge_adr].copy()
+    bad[2, 0] = np.nan
+    held = env.qpos[2, env.hinge_adr].copy()
+    diverged, invalid = env.step(bad)
+    assert invalid.tolist() == [False, False, True] and np.isfinite(env.qpos).all()
+    assert np.abs(env.qpos[2, env.hinge_adr] - held).max() < 0.2  # held its pose, not thrown anywhere
     with pytest.raises(ValueError, match="shape"):
-        env.step(a[:2])
-
-    clean = _env(hum, lib, num_envs=3)
-    contained = _env(hum, lib, num_envs=3, nan_actions="terminate")
-    for e in (clean, contained):
-        e.reset(clips=[0, 1, 2], frames=[10, 10, 10])
-    o1, g1, r1, t1, _, _ = clean.step(a)
-    o2, g2, r2, t2, _, info = contained.step(bad)
-    assert t2[1] and info["invalid_action"][1] and r2["total"][1] == 0.0
-    keep = [0, 2]
-    assert np.array_equal(o1[keep], o2[keep]) and np.array_equal(g1[keep], g2[keep]) and not t2[keep].any()
-    assert np.isfinite(o2).all() and np.isfinite(g2).all()
-
-
-def test_early_termination_and_truncation_are_distinct(hum, lib):
-    env = _env(hum, lib, num_envs=2, max_episode_seconds=0.2)
-    env.reset(clips=[0, 0], frames=[5, 5])
-    q, v = env.qpos.copy(), env.qvel.copy()
-    q[1, 0] += 1.0  # env 1 teleported 1 m away from its reference
-    env.stepper.set_state(np.array([1]), q[1:], v[1:])
-    _, _, _, term, trunc, info = env.step(_pd_actions(env))
-    assert term.tolist() == [False, True] and not trunc.any() and info["max_body_error"][1] > 0.5
-    env.reset([0, 1], clips=[0, 0], frames=[5, 5])
-    for t in range(6):
-        _, _, _, term, trunc, info = env.step(_pd_actions(env))
-    assert trunc.all() and not term.any() and (info["episode_steps"] == 6).all()
-    # the end of the clip truncates too: one step before the goal runs out of reference frames
-    n = lib.lengths[0]
-    env.reset([0, 1], clips=[0, 0], frames=[n - 3, n - 4])
-    _, _, _, term, trunc, _ = env.step(_pd_actions(env))
-    assert trunc.tolist() == [True, False] and not term.any()
-
-
-def test_termination_on_any_body_or_on_the_mean(hum, lib):
-    """A swung arm puts the hand > 0.5 m off while the body as a whole stays: "any" ends the
-    episode, "mean" (PHC's failure test) does not; a 1 m teleport ends both."""
-    envs = {k: _env(hum, lib, num_envs=2, termination=k) for k in ("any", "mean")}
-    k = list(hum.layout.hinge_names).index("UpperArm_L_z")
-    for env in envs.values():
-        env.reset(clips=[0, 0], frames=[5, 5])
-        q, v = env.qpos.copy(), env.qvel.copy()
-        q[0, env.hinge_adr[k]] += 2.5
-        q[1, 0] += 1.0
-        env.stepper.set_state(np.array([0, 1]), q, v)
-    out = {key: env.step(_pd_actions(env)) for key, env in envs.items()}
-    info = out["mean"][5]
-    assert info["max_body_error"][0] > 0.5 > info["mean_body_error"][0] and info["mean_body_error"][1] > 0.5
-    assert out["any"][3].tolist() == [True, True] and out["mean"][3].tolist() == [False, True]
-    with pytest.raises(ValueError, match="termination"):
-        _env(hum, lib, num_envs=1, termination="median")
-
-
-def test_pd_tracking_baseline_falls_but_follows_at_first(hum, lib):
-    res = pd_track(hum, lib, [0, 1, 2, 3], seconds=3.0)
-    assert (res["survival_s"] > 0.2).all() and (res["survival_s"] < 3.0).all()
-    assert (res["mean_reward"] > 0.2).all() and res["qpos"].shape[1] == 91
+        env.step(bad[:2])
+    with pytest.raises(ValueError, match="nan_actions"):
+        HumanoidEnv(hum, SimConfig(num_envs=1, nan_actions="ignore"))
 
 
 # ----------------------------------------------------------------------------- commands
@@ -372,3 +206,113 @@ def test_sim_commands(small_dataset, hum_path, tmp_path, monkeypatch):
     bad.write_text("<mujoco><worldbody>")
     r = runner.invoke(app, ["sim", "pd-track", "--data", str(small_dataset), "--humanoid", str(bad)])
     assert r.exit_code == 2 and "MuJoCo cannot load this MJCF" in r.output
+
+
+# ----------------------------------------------------------------------------- lookups
+
+def test_frame_index_clamps_to_each_clips_last_frame(lib):
+    last = len(lib) - 1
+    clips, frames = np.array([0, 0, 3, 3, last]), np.array([0, 5, lib.lengths[3] - 1, lib.lengths[3] + 7, 10**6])
+    g = lib.frame_index(clips, frames)
+    np.testing.assert_array_equal(g, [lib.starts[0], lib.starts[0] + 5, lib.starts[4] - 1, lib.starts[4] - 1,
+                                      lib.starts[-1] - 1])
+    np.testing.assert_array_equal(lib.qpos[g[3]], lib.clip(3)["qpos"][-1])  # past the end: the clip's last state
+    np.testing.assert_array_equal(lib.frame_index(np.array([1, 2]), 1), lib.starts[[1, 2]] + 1)  # broadcasts
+    assert lib.frame_index(2, 0) == lib.starts[2]
+
+
+def test_kabsch_recovers_rotations_and_never_reflects():
+    from motok.rotations import kabsch, qnormalize, quat_to_matrix
+
+    rng = np.random.default_rng(0)
+    rot = quat_to_matrix(qnormalize(rng.normal(size=(5, 4))))
+    src = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(kabsch(src, np.einsum("fij,kj->fki", rot, src)), rot, atol=1e-12)
+    mirrored = kabsch(src, (src * [1, 1, -1])[None])  # the best orthogonal fit is a reflection
+    assert np.linalg.det(mirrored) == pytest.approx([1.0])
+
+
+# ----------------------------------------------------------------------------- contact filter, solver options
+
+@pytest.fixture(scope="module")
+def body(small_dataset):
+    from motok.sim.mjcf import measure_humanoid
+
+    return measure_humanoid(small_dataset)
+
+
+def _may_collide(m, a: str, b: str) -> bool:
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in (a, b)]
+    ga, gb = (np.flatnonzero(m.geom_bodyid == i) for i in ids)
+    return any((m.geom_contype[i] & m.geom_conaffinity[j]) or (m.geom_contype[j] & m.geom_conaffinity[i])
+               for i in ga for j in gb)
+
+
+def test_default_contacts_keep_the_feet_on_the_floor_for_5_seconds(hum):
+    """The default filter (self_collision "data") and solver options; the rest pose under PD targets 0
+    stands on its soles: after 5 s every contact is a foot or toe on the floor, both feet touch."""
+    m = hum.model
+    assert hum.meta["config"]["self_collision"] == "data"
+    assert (m.opt.iterations, m.opt.ls_iterations) == (10, 5) and m.opt.jacobian == mujoco.mjtJacobian.mjJAC_SPARSE
+    assert m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_ISLAND
+    d = mujoco.MjData(m)
+    z0 = d.qpos[2]
+    for _ in range(int(round(5.0 / m.opt.timestep))):
+        mujoco.mj_step(m, d)
+    assert d.qpos[2] > 0.95 * z0 and np.abs(d.qvel).max() < 0.5
+    sk = hum.skeleton
+    sides = [set(hum.body_ids[list(f)].tolist()) for f in (sk.feet_left, sk.feet_right)]
+    touching = [sorted(m.geom_bodyid[c.geom].tolist()) for c in d.contact[:d.ncon]]
+    assert touching and all(a == 0 and b in sides[0] | sides[1] for a, b in touching)
+    assert all(any(b in side for _, b in touching) for side in sides)
+
+
+def test_self_collision_modes_set_the_contact_bits_and_excludes(body):
+    from motok.sim.humanoid import SELF_COLLISION, HumanoidConfig
+    from motok.sim.mjcf import humanoid_xml
+
+    arms_trunk = [("Hand_L", "Hips"), ("UpperArm_R", "Spine"), ("LowerArm_L", "Chest")]
+    arms_thighs_arms = [("LowerArm_R", "UpperLeg_R"), ("Hand_L", "UpperLeg_R"), ("Hand_L", "Hand_R")]
+    legs = [("UpperLeg_L", "UpperLeg_R"), ("Foot_L", "Foot_R"), ("Toes_L", "LowerLeg_R")]
+    never = [("Head", "Hand_L"), ("Neck", "UpperArm_R"), ("Shoulder_L", "Hand_R"), ("Hand_L", "LowerLeg_L"),
+             ("Hand_R", "Foot_R"), ("Spine", "UpperLeg_L"), ("Hand_L", "UpperArm_L"), ("UpperLeg_L", "Foot_L")]
+    allowed = {"all": arms_trunk + arms_thighs_arms + legs + never, "data": arms_trunk + arms_thighs_arms + legs,
+               "legs": legs, "none": []}
+    for mode in SELF_COLLISION:
+        xml, excludes = humanoid_xml(body, HumanoidConfig(self_collision=mode))
+        m = mujoco.MjModel.from_xml_string(xml)
+        for a, b in arms_trunk + arms_thighs_arms + legs + never:
+            assert _may_collide(m, a, b) == ((a, b) in allowed[mode]), (mode, a, b)
+        floor = np.flatnonzero(m.geom_bodyid == 0)
+        assert all(_may_collide(m, "world", n) for n in body.layout.names if m.body_geomnum[
+            mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n)]) and len(floor) == 1
+        # Pairs the filter allows that overlap at rest are excluded, so the rest pose starts contact-free.
+        assert len(m.exclude_signature) == len(excludes)
+        assert excludes == {"all": excludes, "data": [("Chest", "UpperArm_L"), ("Chest", "UpperArm_R")],
+                            "legs": [], "none": []}[mode]
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        assert d.ncon == 0, mode
+    assert len(humanoid_xml(body, HumanoidConfig(self_collision="all"))[1]) == 7
+
+
+def test_solver_options_and_legacy_values(body, small_dataset, tmp_path):
+    from motok.cli.main import app
+    from motok.sim.humanoid import HumanoidConfig, HumanoidError
+    from motok.sim.mjcf import humanoid_xml
+
+    cfg = HumanoidConfig(solver_iterations=20, ls_iterations=10, jacobian="auto", islands=True)
+    m = mujoco.MjModel.from_xml_string(humanoid_xml(body, cfg)[0])
+    assert (m.opt.iterations, m.opt.ls_iterations, m.opt.jacobian) == (20, 10, mujoco.mjtJacobian.mjJAC_AUTO)
+    assert not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_ISLAND
+    assert HumanoidConfig(self_collision=True).self_collision == "all"  # the option used to be a boolean
+    assert HumanoidConfig(self_collision="false").self_collision == "none"
+    with pytest.raises(HumanoidError, match="self_collision must be one of"):
+        HumanoidConfig(self_collision="arms")
+    with pytest.raises(ValueError, match="total_mass"):
+        humanoid_xml(body, HumanoidConfig(total_mass=80.0))  # the body was measured for 65 kg
+    xml = tmp_path / "legs.xml"
+    r = runner.invoke(app, ["--quiet", "sim", "build-humanoid", "--data", str(small_dataset), "-o", str(xml),
+                            "--set", "self_collision=legs", "--set", "solver_iterations=8", "--json"])
+    assert r.exit_code == 0, r.output
+    assert '"self_collision": "legs"' in r.output and load_humanoid(xml).model.opt.iterations == 8

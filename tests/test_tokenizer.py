@@ -25,11 +25,11 @@ from motok.cli.main import app
 from motok.config import ConfigError, load_config
 from motok.data.dataset import MotionFile
 from motok.features.humanml3d import feature_slices, recover_from_ric
-from motok.tokenizer.model import VQVAE, ModelConfig
-from motok.tokenizer.quantize import QuantizerConfig
+from motok.optim import OptimConfig, lr_factor
+from motok.quantize.base import QuantizerConfig
+from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss
 from motok.tokenizer.tokens import TokenFile, decode, encode, evaluate, reconstruction_errors
-from motok.tokenizer.train import (LossConfig, OptimConfig, TrainConfig, TokenizerError, load_tokenizer, lr_factor,
-                                   resolve_config, train, vqvae_loss)
+from motok.tokenizer.train import TokenizerError, TrainConfig, load_tokenizer, resolve_config, train
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPES = REPO / "recipes" / "tokenizer"
@@ -72,6 +72,88 @@ def test_model_shapes_rate_and_architecture():
     assert torch.equal(m.decode(idx), out.recon)
     m8 = VQVAE(251, ModelConfig(width=16, down_t=3), QuantizerConfig(codebook_size=16, dim=8))
     assert m8.rate == 8 and m8(torch.randn(1, 64, 251)).indices.shape == (1, 8, 1)
+
+
+def _residual_nearest(z: torch.Tensor, books: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference for the quantizer inside the model, from the equations alone: every latent frame
+    z[b, :, t] goes to its nearest code (T2M-GPT Eq. 1, explicit distances in float64), and with
+    several codebooks the residual goes to the next one (residual VQ). Returns indices (B, T, N)
+    and the code sums (B, D, T), added in float32 in codebook order."""
+    B, D, T = z.shape
+    idx = torch.empty(B, T, len(books), dtype=torch.long)
+    zq = torch.zeros(B, D, T)
+    for b in range(B):
+        for t in range(T):
+            r, acc = z[b, :, t].double(), torch.zeros(D)
+            for i, book in enumerate(books):
+                k = int(((book.double() - r) ** 2).sum(1).argmin())
+                idx[b, t, i] = k
+                acc = acc + book[k]
+                r = r - book[k].double()
+            zq[b, :, t] = acc
+    return idx, zq
+
+
+@pytest.mark.parametrize("kind", ["vq", "ema_reset", "rvq"])
+def test_model_sends_every_latent_frame_to_its_nearest_code(kind):
+    torch.manual_seed(0)
+    n = 3 if kind == "rvq" else 1
+    m = VQVAE(251, ModelConfig(width=16, depth=1),
+              QuantizerConfig(kind=kind, codebook_size=32, dim=8, num_codebooks=n, quantizer_dropout=0.0))
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 32, 251, generator=g)
+    layers = list(m.quantizer.layers) if kind == "rvq" else [m.quantizer]
+    with torch.no_grad():
+        z = m.encoder(x.transpose(1, 2))  # (2, 8, 8)
+        # Codes on the scale of the latents (of the residuals, for later codebooks), so that
+        # many different codes win and a wrong layout of the (B, D, T) rows would show.
+        for i, layer in enumerate(layers):
+            layer.embed.copy_(float(z.std()) * 0.5**i * torch.randn(32, 8, generator=g))
+    books = list(m.quantizer.codebooks().clone())
+    idx, zq = _residual_nearest(z, books)
+    assert len(idx.unique()) > 4
+    m.eval()
+    assert torch.equal(m.encode(x), idx)
+    out = m(x)
+    assert torch.equal(out.indices, idx)
+    assert torch.equal(out.recon, m.decoder(zq).transpose(1, 2))
+    assert torch.equal(m.decode(idx), out.recon)
+    # Training: codes are read before the update, and the reconstruction gradient reaches the
+    # encoder output unchanged (straight-through, T2M-GPT Eq. 3).
+    seen = {}
+
+    def keep(module, inputs, output):
+        inputs[0].retain_grad()
+        output.z_q.retain_grad()
+        seen.update(z=inputs[0], zq=output.z_q)
+
+    hook = m.quantizer.register_forward_hook(keep)
+    out = m.train()(x)
+    hook.remove()
+    assert torch.equal(out.indices, idx) and torch.equal(seen["zq"], zq)
+    out.recon.pow(2).sum().backward()
+    assert seen["z"].grad.abs().sum() > 0 and torch.equal(seen["z"].grad, seen["zq"].grad)
+
+
+_EMA_KEYS = ["rng_seed", "train_steps", "embed", "ema_count", "ema_sum", "initted"]
+BUNDLE_QUANTIZER_KEYS = {  # the checkpoint format: renaming any of these breaks old bundles
+    "vq": ["rng_seed", "train_steps", "embed", "initted"],
+    "reset": ["rng_seed", "train_steps", "embed", "window_count", "initted"],
+    "ema": _EMA_KEYS,
+    "ema_reset": _EMA_KEYS,
+    "rvq": ["rng_seed", "train_steps"] + [f"layers.{i}.{k}" for i in range(2) for k in _EMA_KEYS],
+    "fsq": ["rng_seed", "train_steps", "project_in.weight", "project_in.bias", "project_out.weight",
+            "project_out.bias"],
+}
+
+
+@pytest.mark.parametrize("kind", list(BUNDLE_QUANTIZER_KEYS))
+def test_state_dict_keys_are_the_bundle_format(kind):
+    q = QuantizerConfig(kind=kind, codebook_size=16, dim=8, num_codebooks=2 if kind == "rvq" else 1)
+    state = VQVAE(251, ModelConfig(width=16, depth=1), q).state_dict()
+    assert {k.split(".")[0] for k in state} == {"encoder", "quantizer", "decoder", "mean", "std"}
+    keys = [k.removeprefix("quantizer.") for k in state if k.startswith("quantizer.")]
+    assert sorted(keys) == sorted(BUNDLE_QUANTIZER_KEYS[kind])
 
 
 def test_loss_terms():

@@ -3,7 +3,6 @@ arguments only; the work is in ``motok.control.expert``."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Optional
@@ -11,49 +10,35 @@ from typing import Optional
 import typer
 
 from motok import progress as _progress
+from motok.cli.common import Resume, input_option, print_json, recipe_option, report, run
 
 app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP).", no_args_is_help=True)
 expert_app = typer.Typer(help="The hybrid-latent paper's expert policy (appendix B.2).", no_args_is_help=True)
 app.add_typer(expert_app, name="expert")
 
 
-def _run(fn, *args, **kwargs):
-    """User errors become one line and exit code 2 (the root CLI's convention)."""
-    from motok.checkpoint import CheckpointError
-    from motok.sim.humanoid import HumanoidError
-    from motok.cli.main import run
-    return run(fn, *args, catch=(CheckpointError, HumanoidError, ValueError), **kwargs)
-
-
 @expert_app.command("train")
 def train_cmd(
-    data: Path = typer.Option(..., "--data", help="A motion-dataset artifact (.h5)."),
+    data: Path = input_option("--data", help="A motion-dataset artifact (.h5)."),
     out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle, metrics.jsonl)."),
     clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob, e.g. 'dataset-2_walk_normal*'."),
-    recipe: Optional[Path] = typer.Option(None, "--recipe", help="YAML recipe (recipes/control/)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
+    recipe: Optional[Path] = recipe_option("recipes/control/"),
     sets: list[str] = typer.Option([], "--set", help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
     humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached)."),
-    resume: bool = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped."),
+    resume: bool = Resume,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the LR schedule still "
                                         "spans the recipe's iterations; --resume continues)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
-    from motok.cli.main import _report
     from motok.config import load_config
-    from motok.control.expert import ExpertConfig, select_clips, train
+    from motok.control.expert import ExpertConfig, train_from_data
 
-    cfg = _run(load_config, ExpertConfig, recipe, sets)
-
-    def go():
-        from motok.sim.humanoid import load_humanoid
-        from motok.sim.reference import humanoid_for, load_library
-        hum = load_humanoid(out / "humanoid.xml") if resume and (out / "humanoid.xml").exists() else (
-            load_humanoid(humanoid) if humanoid else humanoid_for(data))
-        lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips))
-        return train(cfg, out, hum, lib, resume=resume, until=until, data=data)
-
-    _report(_run(go), as_json, title="control expert train")
+    cfg = run(load_config, ExpertConfig, recipe, sets)
+    summary = run(train_from_data, cfg, data, out, clips=clips, split=split, humanoid=humanoid, resume=resume,
+                  until=until)
+    report(summary, as_json, "control expert train")
 
 
 @expert_app.command("eval")
@@ -61,6 +46,8 @@ def eval_cmd(
     run_dir: Path = typer.Option(..., "--run", help="A control-expert run folder."),
     data: Optional[Path] = typer.Option(None, "--data", help="Dataset (default: the one it was trained on)."),
     clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob (default: the training clips)."),
+    split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test) of the "
+                                        "dataset, with a table per content and per style."),
     render: Optional[Path] = typer.Option(None, "--render", help="Video of the first clip (.mp4/.gif)."),
     termination: Optional[str] = typer.Option(None, "--termination",
                                               help="Failure test: 'any' body or the 'mean' (default: the run's)."),
@@ -68,17 +55,31 @@ def eval_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the full results as JSON."),
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
-    from motok.control.evaluate import evaluate_run
+    from motok.control.expert import evaluate_run
 
-    res = _run(evaluate_run, run_dir, data=data, clips=clips, render=render, termination=termination,
-               distance=distance)
+    res = run(evaluate_run, run_dir, data=data, clips=clips, split=split, render=render, termination=termination,
+              distance=distance)
     if as_json:
-        typer.echo(json.dumps(res, indent=2))
+        print_json(res)
         return
     from rich.table import Table
     cols = {"success": "ok", "seconds": "time s", "mpjpe_mm": "MPJPE", "g_mpjpe_mm": "G-MPJPE",
             "root_vel_err_mm": "vel err", "root_acc_err_mm": "acc err"}
     names = list(res["clips"])
+    groups = res["groups"]
+    if len(names) > 40:  # a split: one row per content and per style instead of per clip
+        for kind in ("content", "style"):
+            t = Table(title=f"expert eval of {run_dir} per {kind}" + (f" ({split} split)" if split else "")
+                      + "; errors in mm, mm/frame, mm/frame^2")
+            t.add_column(kind, no_wrap=True)
+            for header in ["clips", *cols.values()]:
+                t.add_column(header, justify="right", no_wrap=True, min_width=len(header))
+            for g, r in groups[kind].items():
+                t.add_row(g, str(r["clips"]), f"{r['success_rate']:.0%}", f"{r['seconds_played']:.0f}",
+                          *[f"{r[c]:.1f}" for c in list(cols)[2:]])
+            _progress.console.print(t)
+        _summary_line(res)
+        return
     # Clip names share a long prefix (dataset-2_walk_normal_...): print it once, in the header.
     prefix = os.path.commonprefix(names) if len(names) > 1 else ""
     prefix = prefix[: max(prefix.rfind("_"), prefix.rfind("-")) + 1]
@@ -94,7 +95,13 @@ def eval_cmd(
     t.add_row("[bold]overall", f"{o['success_rate']:.0%}", f"{o['seconds_played']:.1f}",
               *[f"{o[c]:.1f}" for c in list(cols)[2:]])
     _progress.console.print(t)
-    _progress.info(f"success: {o['termination']} ends a clip; {o['success_rate_any_body']:.0%} also kept every "
-                   "single body within that distance")
+    _summary_line(res)
+
+
+def _summary_line(res: dict) -> None:
+    o = res["overall"]
+    _progress.info(f"{o['clips']} clips, {o['success_rate']:.1%} played to the end ({o['termination']} ends a "
+                   f"clip); {o['success_rate_any_body']:.1%} also kept every single body within that distance; "
+                   f"MPJPE {o['mpjpe_mm']:.1f} mm, G-MPJPE {o['g_mpjpe_mm']:.1f} mm")
     if "video" in res:
         _progress.info(f"wrote {res['video']}")

@@ -2,45 +2,27 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Optional
 
 import typer
 
+from motok.cli.common import JsonOut, Resume, Sets, existing, input_option, recipe_option, report, run
+
 app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes): train, sample.",
                   no_args_is_help=True)
 
 
-def _run(fn, *args, **kwargs):
-    """User errors become one line and exit code 2 (the root CLI's convention)."""
-    from motok.checkpoint import CheckpointError
-    from motok.gpt.train import GPTError
-    from motok.text.encoders import TextEncoderError
-    from motok.tokenizer.train import TokenizerError
-    from motok.cli.main import run
-    return run(fn, *args, catch=(CheckpointError, GPTError, TextEncoderError, TokenizerError), **kwargs)
-
-
 def _report(summary: dict, as_json: bool, title: str):
-    if as_json:
-        typer.echo(json.dumps(summary, indent=2, default=str))
-        return
-    from rich.markup import escape
-    from rich.table import Table
-
-    from motok.progress import console
     files = [summary["output"]] if "names" in summary else []
     files += summary.get("render", []) + summary.get("bvh", [])
-    t = Table(title=title, show_header=False)
-    for k, v in summary.items():
-        if k in ("render", "bvh", "names") or (files and k == "output"):
-            continue
-        if isinstance(v, list):
-            v = ", ".join(map(str, v))
-        t.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
-    console.print(t)
+    report(summary, as_json, title, hide=("render", "bvh", "names") + (("output",) if files else ()))
+    if as_json:
+        return
+    from rich.markup import escape
+
+    from motok.progress import console
     # Paths unwrapped, one per line, so they can be copied whatever the terminal width.
     for f in files:
         console.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)
@@ -48,19 +30,17 @@ def _report(summary: dict, as_json: bool, title: str):
 
 @app.command()
 def train(
-    tokens: Path = typer.Option(..., "--tokens", help="A tokens artifact (from `tokenize encode`) with captions."),
+    tokens: Path = input_option("--tokens", help="A tokens artifact (from `tokenize encode`) with captions."),
     out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle + metrics.jsonl)."),
-    recipe: Optional[Path] = typer.Option(None, "--recipe", help="YAML recipe (recipes/gpt/)."),
-    sets: list[str] = typer.Option([], "--set", help="Override a config key: --set key=value (repeatable)."),
-    resume: bool = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped."),
-    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    recipe: Optional[Path] = recipe_option("recipes/gpt/"), sets: list[str] = Sets,
+    resume: bool = Resume, as_json: bool = JsonOut,
 ):
     """Train the GPT; runs unchanged under `torchrun --nproc_per_node N --no-python motok ...`."""
     from motok.gpt.train import resolve_config
     from motok.gpt.train import train as _train
-    cfg = _run(resolve_config, recipe, sets, out, resume)
-    summary = _run(_train, cfg, tokens, out, resume=resume)
-    if int(os.environ.get("RANK", "0")) == 0:
+    cfg = run(resolve_config, recipe, sets, out, resume)
+    summary = run(_train, cfg, tokens, out, resume=resume)
+    if int(os.environ.get("RANK", "0")) == 0:  # every torchrun rank returns the summary; one prints it
         _report(summary, as_json, "gpt train")
 
 
@@ -68,7 +48,7 @@ def train(
 def sample(
     gpt: Path = typer.Option(..., "--gpt", help="A GPT run folder (from `gpt train`)."),
     text: list[str] = typer.Option([], "--text", help="A sentence (repeatable)."),
-    texts_file: Optional[Path] = typer.Option(None, "--texts-file", help="One sentence per line."),
+    texts_file: Optional[Path] = typer.Option(None, "--texts-file", help="One sentence per line.", callback=existing),
     num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per text."),
     seed: int = typer.Option(0, "--seed", help="Sample j uses seed + j."),
     temperature: float = typer.Option(1.0, "--temperature"),
@@ -81,17 +61,14 @@ def sample(
     bvh: Optional[Path] = typer.Option(None, "--bvh", help="Also export OUT.bvh (one per clip)."),
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", help="Tokenizer run (default: the GPT's own)."),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode with another tokenizer."),
-    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    as_json: bool = JsonOut,
 ):
     """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went."""
     from motok.gpt.sample import sample as _sample
     texts = list(text)
     if texts_file is not None:
-        if not texts_file.is_file():
-            from motok.cli.main import fail
-            fail(f"--texts-file {texts_file}: no such file")
         texts += [ln.strip() for ln in texts_file.read_text().splitlines() if ln.strip()]
-    summary = _run(_sample, gpt, texts, out, num_samples=num_samples, seed=seed, temperature=temperature,
-                   top_k=top_k, top_p=top_p, argmax=argmax, seconds=seconds, render=render, bvh=bvh,
-                   tokenizer=tokenizer, allow_mismatch=allow_mismatch)
+    summary = run(_sample, gpt, texts, out, num_samples=num_samples, seed=seed, temperature=temperature,
+                  top_k=top_k, top_p=top_p, argmax=argmax, seconds=seconds, render=render, bvh=bvh,
+                  tokenizer=tokenizer, allow_mismatch=allow_mismatch)
     _report(summary, as_json, "gpt sample")

@@ -5,28 +5,21 @@ Argument parsing only; the work is in ``motok.sim``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from motok import progress as _progress
+from motok.cli.common import fail, input_option, print_json, report, run
 
 app = typer.Typer(help="Physics: the MuJoCo humanoid built from a dataset's skeleton, and its reference motions.",
                   no_args_is_help=True)
 
-Data = typer.Option(..., "--data", help="A motion-dataset artifact (.h5).")
+Data = input_option("--data", help="A motion-dataset artifact (.h5).")
 HumanoidOpt = typer.Option(None, "--humanoid", help="Humanoid MJCF (default: built from --data once and cached).")
 Hz = typer.Option(None, "--hz", help="Control rate in Hz (default: the humanoid's, 30).")
 Sets = typer.Option([], "--set", help="Override a HumanoidConfig key: --set key=value (repeatable).")
-
-
-def _run(fn, *args, **kwargs):
-    """User errors become one line and exit code 2 (the root CLI's convention)."""
-    from motok.sim.humanoid import HumanoidError
-    from motok.cli.main import run
-    return run(fn, *args, catch=(HumanoidError, ValueError), **kwargs)
 
 
 def _setup(data: Path, humanoid: Optional[Path], hz: Optional[float], clips):
@@ -47,14 +40,14 @@ def build_humanoid_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ):
     """An MJCF humanoid from the dataset's skeleton: capsules, box feet, ranges from the data, PD actuators."""
-    from motok.cli.main import _report
     from motok.config import load_config
-    from motok.sim.humanoid import HumanoidConfig, build_humanoid
+    from motok.sim.humanoid import HumanoidConfig
+    from motok.sim.mjcf import build_humanoid
 
     flags = {"total_mass": mass, "timestep": timestep}
-    cfg = _run(load_config, HumanoidConfig, None, list(sets) + [f"{k}={v}" for k, v in flags.items() if v is not None])
-    summary = _run(build_humanoid, data, out, cfg)
-    _report(summary, as_json, title="build-humanoid")
+    cfg = run(load_config, HumanoidConfig, None, list(sets) + [f"{k}={v}" for k, v in flags.items() if v is not None])
+    summary = run(build_humanoid, data, out, cfg)
+    report(summary, as_json, "build-humanoid")
 
 
 @app.command()
@@ -76,7 +69,7 @@ def replay(
         qpos = lib.clip(0)["qpos"][:max_frames]
         return render_trajectory(hum, qpos, out, lib.fps, title=lib.names[0], backend="stick" if stick else "auto")
 
-    path, backend = _run(go)
+    path, backend = run(go)
     _progress.info(f"wrote {path} ({backend} renderer)")
 
 
@@ -92,35 +85,19 @@ def pd_track_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the results as JSON."),
 ):
     """Track a reference with plain PD (no policy) and report how long the humanoid stays up."""
-    from motok.cli.main import fail
-
     clips = None if clip == "all" else [int(clip) if clip.isdigit() else clip]
     if clips is None and out is not None:
         fail("-o renders one clip: pass --clip NAME")
 
     def go():
-        import numpy as np
+        from motok.control.baselines import pd_track_run
+        return pd_track_run(*_setup(data, humanoid, hz, clips), seconds, out, stick)
 
-        from motok.sim.env import pd_track
-        hum, lib = _setup(data, humanoid, hz, clips)
-        res = pd_track(hum, lib, range(len(lib)), seconds)
-        written = None
-        if out is not None:
-            from motok.sim.render import render_trajectory
-            written = render_trajectory(hum, res["qpos"][0], out, lib.fps, ghost=res["ref_qpos"][0],
-                                        title=f"PD tracking {lib.names[0]}", backend="stick" if stick else "auto")
-        s = res["survival_s"]
-        return {"clips": len(s), "tracked_s": round(res["seconds"], 2), "survival_mean_s": round(float(s.mean()), 3),
-                "survival_median_s": round(float(np.median(s)), 3), "survival_max_s": round(float(s.max()), 3),
-                "per_clip": dict(zip(res["clips"], [round(float(x), 3) for x in s])),
-                **({"video": f"{written[0]} ({written[1]})"} if written else {})}
-
-    summary = _run(go)
+    summary = run(go)
     if as_json:
-        typer.echo(json.dumps(summary, indent=2))
+        print_json(summary)
         return
-    from motok.cli.main import _report
     short = {k: v for k, v in summary.items() if k != "per_clip"}
     if len(summary["per_clip"]) <= 5:
         short.update({f"survival {k}": f"{v} s" for k, v in summary["per_clip"].items()})
-    _report(short, False, title="pd-track")
+    report(short, False, "pd-track")

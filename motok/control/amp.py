@@ -26,6 +26,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from motok.control.networks import mlp
+from motok.control.ppo import average_gradients, world_size
+from motok.sim.obs import Bodies, observation
 
 
 @dataclass
@@ -160,8 +162,32 @@ class AMP:
                                                    if n_.endswith("weight"))
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
+            if world_size() > 1:
+                average_gradients(list(self.disc.parameters()))
             self.opt.step()
             for k_, v in st.items():
                 stats[k_] = stats.get(k_, 0.0) + v / c.updates
         self.replay.add(s, s2)
         return stats
+
+
+def reference_observations(lib, end_effectors) -> np.ndarray:
+    """Eq. 7 observation of every frame of a reference library: the discriminator's reference samples."""
+    bodies = Bodies(lib.body_pos, lib.body_vel, lib.body_angvel, quat=lib.body_quat)
+    return observation(lib.qpos, lib.qvel, bodies, end_effectors)
+
+
+class AMPHook:
+    """AMP as a reward hook of the rollout collector: ``r_style`` on the rollout's transitions,
+    then a discriminator update on them, with its own seeded generator for minibatches."""
+
+    name = "r_style"
+
+    def __init__(self, amp: AMP, weight: float, rng: np.random.Generator):
+        self.amp, self.weight, self.rng = amp, weight, rng
+
+    def reward(self, s: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
+        return self.amp.reward(s, s2)
+
+    def update(self, s: torch.Tensor, s2: torch.Tensor) -> dict[str, float]:
+        return self.amp.update(s, s2, self.rng)

@@ -1,114 +1,152 @@
-"""Evaluation of an imitation expert: every clip played from its first frame with the mean action
-(``motok control expert eval``, and the ``eval_*`` metrics logged during training)."""
+"""Evaluation of an imitation policy: every clip played from its first frame with the most
+likely action (``motok control expert eval``, the ``eval_*`` metrics logged during training, and
+the difficulty evaluations of ``motok.control.sampling``)."""
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, replace
-from pathlib import Path
+from collections import defaultdict
+from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
-from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import atomic_path
-from motok.control.expert import ExpertConfig, _t, load_expert, select_clips
+from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.networks import ActorCritic
-from motok.sim.env import HumanoidEnv
+from motok.control.rollout import as_tensor
+from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
+from motok.eval.metrics import acceleration_error, mpjpe, velocity_error
+from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
 from motok.sim.reference import ReferenceLibrary
 
+ERRORS = ("mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm")
 
-def eval_metrics(res: dict) -> dict:
-    """The overall numbers of :func:`evaluate` as ``eval_*`` training metrics."""
+
+def eval_metrics(res: dict, prefix: str = "eval_") -> dict:
+    """The overall numbers of :func:`evaluate` as training metrics."""
     o = res["overall"]
-    return {"eval_success": o["success_rate"], "eval_success_any_body": o["success_rate_any_body"],
-            "eval_seconds": o["seconds_played"] / max(o["clips"], 1), "eval_mpjpe_mm": o["mpjpe_mm"],
-            "eval_g_mpjpe_mm": o["g_mpjpe_mm"]}
+    return {f"{prefix}success": o["success_rate"], f"{prefix}success_any_body": o["success_rate_any_body"],
+            f"{prefix}seconds": o["seconds_played"] / max(o["clips"], 1), f"{prefix}mpjpe_mm": o["mpjpe_mm"],
+            f"{prefix}g_mpjpe_mm": o["g_mpjpe_mm"]}
 
 
-def evaluate(cfg: ExpertConfig, hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, render=None) -> dict:
-    """Every clip from its first frame with the mean action, until the clip's end (success) or early
-    termination (the env's criterion; ``success_rate_any_body`` also requires every single body to
-    have stayed within the distance, the stricter test). Errors over the frames played: MPJPE
-    (root-relative) and G-MPJPE (global) in mm, root velocity (mm/frame) and acceleration
-    (mm/frame^2) errors from finite differences."""
-    N = len(lib)
-    env = HumanoidEnv(hum, lib, replace(cfg.env, num_envs=N, max_episode_seconds=1e9, seed=cfg.seed))
-    obs, goal = env.reset(clips=np.arange(N), frames=0)
-    g0 = lib.starts[:-1]
-    pos, ref, qpos = [env.bodies.pos.copy()], [lib.body_pos[g0]], [env.qpos[0].copy()]
+def _play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfig, action: ActionConfig,
+          keep_qpos: bool) -> dict:
+    """One batch of clips ``ids`` from frame 0 until each ends or fails."""
+    N = len(ids)
+    env = HumanoidEnv(hum, replace(sim, num_envs=N))
+    # The generator is never drawn from: every start is given.
+    it = ImitationTask(task, env, lib, np.random.default_rng(0))
+    mdp = TaskEnv(env, it, partial(pd_targets, action))
+    obs, goal = mdp.reset(clips=ids, frames=0)
+    pos, ref, qpos = [env.bodies.pos.copy()], [lib.body_pos[lib.starts[ids]]], [env.qpos[0].copy()]
     alive, played = [np.ones(N, bool)], np.zeros(N, dtype=np.int64)
     active, success = np.ones(N, bool), np.zeros(N, bool)
     worst = np.zeros(N)  # largest single-body error over the frames played
     while active.any():
-        _, a, _, _ = ac.act(_t(np.concatenate([obs, goal], 1)), deterministic=True)
-        obs, goal, _, term, trunc, info = env.step(a.numpy())
+        _, a, _, _ = ac.act(as_tensor(np.concatenate([obs, goal], 1)), deterministic=True)
+        obs, goal, _, term, trunc, info = mdp.step(a.numpy())
         worst = np.where(active, np.maximum(worst, info["max_body_error"]), worst)
-        g = np.minimum(lib.starts[env.clip] + env.frame, lib.starts[env.clip + 1] - 1)
-        pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[g]), alive.append(active.copy())
-        qpos.append(env.qpos[0].copy())
+        pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[lib.frame_index(it.clip, it.frame)])
+        alive.append(active.copy())
+        if keep_qpos:
+            qpos.append(env.qpos[0].copy())
         played += active
         success |= active & trunc
         active &= ~(term | trunc)
-    P, R, A = np.stack(pos, 1), np.stack(ref, 1), np.stack(alive, 1)
-    per = {}
-    for i, name in enumerate(lib.names):
-        p, r = P[i, A[i]], R[i, A[i]]
-        rel = (p - p[:, :1]) - (r - r[:, :1])
-        v, vr = np.diff(p[:, 0], axis=0), np.diff(r[:, 0], axis=0)
-        per[name] = {"success": bool(success[i]), "max_body_error_m": float(worst[i]),
-                     "seconds": float(played[i] * env.dt),
-                     "clip_seconds": float((lib.lengths[i] - 1 - env.cfg.goal_frames) * env.dt),
-                     "mpjpe_mm": 1e3 * float(np.linalg.norm(rel, axis=-1).mean()),
-                     "g_mpjpe_mm": 1e3 * float(np.linalg.norm(p - r, axis=-1).mean()),
-                     "root_vel_err_mm": 1e3 * float(np.linalg.norm(v - vr, axis=-1).mean()) if len(v) else float("nan"),
-                     "root_acc_err_mm": 1e3 * float(np.linalg.norm(np.diff(v - vr, axis=0), axis=-1).mean())
-                     if len(v) > 1 else float("nan")}
-    w = np.array([v["seconds"] for v in per.values()])
-    strict = success & (worst <= env.cfg.termination_distance)
-    overall = {"clips": N, "termination": f"{env.cfg.termination} body error > {env.cfg.termination_distance:g} m",
-               "success_rate": float(success.mean()), "success_rate_any_body": float(strict.mean()),
-               "seconds_played": float(w.sum())}
-    for k in ("mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm"):
-        vals = np.array([v[k] for v in per.values()])
-        ok = np.isfinite(vals)
-        overall[k] = float(np.average(vals[ok], weights=np.maximum(w[ok], 1e-9))) if ok.any() else float("nan")
-    out = {"overall": overall, "clips": per}
+    return {"pos": np.stack(pos, 1), "ref": np.stack(ref, 1), "alive": np.stack(alive, 1), "played": played,
+            "success": success, "worst": worst, "qpos": np.stack(qpos), "dt": env.dt}
+
+
+def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConfig, task: ImitationTaskConfig,
+             action: ActionConfig, render=None, batch: int = 256, clips=None) -> dict:
+    """Every clip from its first frame with the most likely action, until the clip's end (success)
+    or early termination (the task's criterion; ``success_rate_any_body`` also requires every
+    single body to have stayed within the distance, the stricter test). Errors over the frames
+    played: MPJPE (root-relative) and G-MPJPE (global) in mm, root velocity (mm/frame) and
+    acceleration (mm/frame^2) errors from finite differences (``motok.eval.metrics``).
+
+    Clips are played ``batch`` at a time, sorted by length, so a batch ends with its longest clip
+    and a long clip does not keep thousands of finished environments stepping. ``clips``: indices
+    of the library's clips to play (default: all)."""
+    tcfg = replace(task, max_episode_seconds=1e9)
+    chosen = np.arange(len(lib)) if clips is None else np.asarray(clips, dtype=np.int64)
+    order = chosen[np.argsort(-lib.lengths[chosen], kind="stable")]
+    chunks = [order[i:i + batch] for i in range(0, len(order), batch)]
+    per, video_qpos = {}, None
+    success, worst = np.zeros(len(lib), bool), np.zeros(len(lib))
+    if render is not None and 0 not in chosen:
+        raise ValueError("render draws the library's first clip: include clip 0")
+    for ids in chunks:
+        first = render is not None and 0 in ids
+        if first:  # the rendered clip leads its batch, so its qpos are row 0
+            ids = np.concatenate([[0], ids[ids != 0]])
+        out = _play(hum, ac, lib, ids, sim, tcfg, action, keep_qpos=first)
+        if first:
+            video_qpos = (out["qpos"], int(out["played"][0]))
+        for k, i in enumerate(ids):
+            a = out["alive"][k]
+            p, r = out["pos"][k, a], out["ref"][k, a]
+            success[i], worst[i] = out["success"][k], out["worst"][k]
+            per[lib.names[i]] = {
+                "success": bool(out["success"][k]), "max_body_error_m": float(out["worst"][k]),
+                "seconds": float(out["played"][k] * out["dt"]),
+                "clip_seconds": float((lib.lengths[i] - 1 - tcfg.goal_frames) * out["dt"]),
+                "mpjpe_mm": float(mpjpe(p, r).mean()), "g_mpjpe_mm": float(mpjpe(p, r, root_relative=False).mean()),
+                "root_vel_err_mm": float(velocity_error(p[:, :1], r[:, :1]).mean()) if len(p) > 1 else float("nan"),
+                "root_acc_err_mm": float(acceleration_error(p[:, :1], r[:, :1]).mean()) if len(p) > 2
+                else float("nan")}
+    per = {lib.names[i]: per[lib.names[i]] for i in chosen}
+    strict = (success & (worst <= tcfg.termination_distance))[chosen]
+    out = {"overall": {"clips": len(chosen), "termination": f"{tcfg.termination} body error > {tcfg.termination_distance:g} m",
+                       "success_rate_any_body": float(strict.mean()), **summarise(per)}, "clips": per}
     if render is not None:
         from motok.sim.render import render_trajectory
-        n = int(played[0]) + 1
+        qpos, played = video_qpos
+        n = played + 1
         ghost = lib.qpos[lib.starts[0]:lib.starts[0] + n]
-        path, backend = render_trajectory(hum, np.stack(qpos)[:n], render, lib.fps, ghost=ghost,
-                                          title=f"expert {lib.names[0]}")
+        path, backend = render_trajectory(hum, qpos[:n], render, lib.fps, ghost=ghost, title=f"expert {lib.names[0]}")
         out["video"] = f"{path} ({backend})"
     return out
 
 
-def evaluate_run(run, *, data=None, clips: str | None = None, render=None, termination: str | None = None,
-                 distance: float | None = None) -> dict:
-    """``motok control expert eval``: :func:`evaluate` the checkpoint in ``run`` on its training
-    clips (or the ``clips`` glob of ``data``) and write ``RUN/eval.json`` with the checkpoint it
-    measured (iteration, samples, training wall time, MJCF hash) and provenance, so a number
-    quoted from it can be traced to the weights and data that made it."""
-    from motok.sim.reference import load_library
-
-    run = Path(run)
-    cfg, hum, ac, meta = load_expert(run)
-    if termination is not None:
-        cfg.env.termination = termination
-    if distance is not None:
-        cfg.env.termination_distance = distance
-    src = data or meta["extra"].get("data")
-    if not src:
-        raise ValueError(f"{run} does not record its dataset: pass --data")
-    names = select_clips(src, clips) if clips else meta["extra"]["clips"]
-    res = evaluate(cfg, hum, ac, load_library(hum, src, control_hz=cfg.env.control_hz, clips=names), render)
-    ex = meta["extra"]
-    res["checkpoint"] = {"iteration": ex["iteration"], "samples": ex["samples"],
-                         "wall_s": ex.get("last_metrics", {}).get("wall_s"), "mjcf_sha256": ex["mjcf_sha256"]}
-    prov = Provenance(command=command_line(), config={"run": str(run), "clips": clips, "env": asdict(cfg.env)},
-                      inputs=hash_inputs([src]))
-    res = {"kind": "control-expert-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
-    with atomic_path(run / "eval.json") as tmp:
-        tmp.write_text(json.dumps(res, indent=2))
+def summarise(per: dict) -> dict:
+    """Success over clips and errors weighted by the time each clip was played."""
+    w = np.array([v["seconds"] for v in per.values()])
+    res = {"success_rate": float(np.mean([v["success"] for v in per.values()])), "seconds_played": float(w.sum())}
+    for k in ERRORS:
+        vals = np.array([v[k] for v in per.values()])
+        ok = np.isfinite(vals)
+        res[k] = float(np.average(vals[ok], weights=np.maximum(w[ok], 1e-9))) if ok.any() else float("nan")
     return res
+
+
+def name_parts(name: str) -> tuple[str, str]:
+    """``(content, style)`` of a Bandai-Namco-style clip name ``dataset-N_content_style_NNN``;
+    other names form one group."""
+    parts = name.split("_")
+    return (parts[1], parts[2]) if len(parts) >= 4 else ("all", "all")
+
+
+def by_group(per: dict) -> dict[str, dict[str, dict]]:
+    """:func:`summarise` per content and per style: ``{"content": {...}, "style": {...}}``."""
+    groups: dict[str, dict[str, dict]] = {"content": defaultdict(dict), "style": defaultdict(dict)}
+    for name, r in per.items():
+        content, style = name_parts(name)
+        groups["content"][content][name] = r
+        groups["style"][style][name] = r
+    return {kind: {g: {"clips": len(m), **summarise(m)} for g, m in sorted(d.items())} for kind, d in groups.items()}
+
+
+def subset(names: list[str], per_group: int) -> list[str]:
+    """A fixed evaluation subset: the first ``per_group`` clips (in name order) of every
+    content x style group, so the training curve sees every kind of motion."""
+    seen: dict[tuple[str, str], int] = defaultdict(int)
+    out = []
+    for n in sorted(names):
+        g = name_parts(n)
+        if seen[g] < per_group:
+            out.append(n)
+            seen[g] += 1
+    return out

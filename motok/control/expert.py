@@ -1,59 +1,54 @@
-"""The physics expert of the hybrid-latent paper (appendix B.2): PPO on the imitation environment
-with ``r = w_im r_im + w_style r_style`` (0.5 each in the paper).
+"""The physics expert of the hybrid-latent paper (appendix B.2): PPO on the imitation task with
+``r = w_im r_im + w_style r_style`` (0.5 each in the paper).
 
-* ``r_im``, Eq. 10, a **product** ``r_root r_q r_alpha r_ee`` of ``exp(-k e)`` terms with the paper's
-  exponents ``k = (10, 2, 0.5, 40)``. The environment's own ``reward["total"]`` is PHC's weighted
-  *sum* of different terms (docs/sim.md), so the product is computed here from the simulated and
-  reference states (:func:`imitation_errors`): ``e_root`` the squared root position error (m^2),
-  ``e_q`` the sum over hinges of squared joint angle errors (rad^2, DeepMimic's pose term),
-  ``e_alpha`` the mean over hinges of squared joint velocity errors ((rad/s)^2; a sum would make
-  ``exp(-0.5 e)`` vanish for any walking policy), ``e_ee`` the sum over end effectors of squared
-  root-relative position errors (m^2).
-* ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.amp``.
+* ``r_im``, Eq. 10, the product form of ``motok.control.mdp.rewards`` (the imitation task's
+  reward, ``motok.control.tasks.imitation``);
+* ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.amp``, a reward hook of the
+  rollout collector.
 
-Training saves a bundle (kind ``control-expert``) every ``save_every`` iterations with the MJCF
-(``RUN/humanoid.xml``) and its hash, the observation/action spec, the normaliser statistics, and
-everything needed to resume exactly: optimisers, replay buffer, torch/numpy/env RNG states. At a
-checkpoint every environment restarts from a fresh reference state, in an uninterrupted run as
-in a resumed one, which is what makes resuming bit-exact without saving MuJoCo's solver state.
+The trainer only composes parts: physics (``HumanoidEnv``), the imitation task, the action map
+(residual PD targets), the encoder-decoder policy, the collector and PPO; the runner
+(``motok.control.runner``) does the rest. Training saves a bundle (kind ``control-expert``)
+every ``save_every`` iterations with the MJCF (``RUN/humanoid.xml``) and its hash, the
+observation/action spec, the normaliser statistics, and everything needed to resume exactly:
+optimisers, replay buffer, torch/numpy/task RNG states.
 """
 
 from __future__ import annotations
 
-import fnmatch
-import hashlib
 import json
-import shutil
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from motok import progress as _progress
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.checkpoint import (CheckpointError, MetricsLog, load_bundle, register_kind, rng_state, save_bundle,
-                              set_rng_state)
-from motok.config import from_dict, to_dict
-from motok.control.amp import AMP, AMPConfig
-from motok.control.networks import ActorCritic, EncoderDecoderPolicy, RunningNorm, ValueNet
-from motok.control.ppo import PPO, PPOConfig, Rollout
-from motok.sim.env import EnvConfig, HumanoidEnv
+from motok.atomic import atomic_path
+from motok.checkpoint import CheckpointError, load_bundle, register_kind
+from motok.config import from_dict
+from motok.control import runner
+from motok.control.clips import select_clips
+from motok.control.amp import AMP, AMPConfig, AMPHook, reference_observations
+from motok.control.evaluate import by_group, eval_metrics, evaluate, subset, summarise
+from motok.control.mdp.actions import ActionConfig, pd_targets
+from motok.control.networks import ActorCritic, RunningNorm, ValueNet
+from motok.control.policies import EncoderDecoderPolicy
+from motok.control.ppo import PPO, PPOConfig
+from motok.control.rollout import Collector
+from motok.control.sampling import DifficultySampler, SamplingConfig, failures
+from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
+from motok.distributed import Dist, gather
+from motok.errors import UserError
+from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid, load_humanoid
-from motok.sim.obs import Bodies, observation
 from motok.sim.reference import ReferenceLibrary
 
 KIND = "control-expert"
 register_kind(KIND, (1,))
-
-
-@dataclass
-class ImitationConfig:
-    k_root: float = 10.0
-    k_q: float = 2.0
-    k_alpha: float = 0.5
-    k_ee: float = 40.0
 
 
 @dataclass
@@ -75,90 +70,55 @@ class ExpertConfig:
     w_style: float = 0.5
     save_every: int = 50
     eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
+    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every training clip)
     torch_threads: int = 1  # 2 fights MuJoCo's worker threads on a 2-core machine: 3x slower updates
-    env: EnvConfig = field(default_factory=lambda: EnvConfig(num_envs=64))
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
+    task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)
+    action: ActionConfig = field(default_factory=ActionConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     net: NetConfig = field(default_factory=NetConfig)
     amp: AMPConfig = field(default_factory=AMPConfig)
-    imitation: ImitationConfig = field(default_factory=ImitationConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
 
 
-# ---------------------------------------------------------------------- Eq. 10, product form
-def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict[str, np.ndarray]:
-    """Squared errors ``(N,)`` of body positions ``(N, J, 3)`` (root = body 0), hinge angles and
-    velocities ``(N, H)`` and end effectors ``ee`` (body indices, root-relative)."""
-    rel, rel_ref = pos[:, ee] - pos[:, :1], ref_pos[:, ee] - ref_pos[:, :1]
-    return {"root": ((pos[:, 0] - ref_pos[:, 0]) ** 2).sum(-1), "q": ((q - q_ref) ** 2).sum(-1),
-            "alpha": ((qd - qd_ref) ** 2).mean(-1), "ee": ((rel - rel_ref) ** 2).sum(-1).sum(-1)}
-
-
-def imitation_reward(err: dict[str, np.ndarray], cfg: ImitationConfig) -> dict[str, np.ndarray]:
-    """Eq. 10: ``r_im = exp(-10 e_root) exp(-2 e_q) exp(-0.5 e_alpha) exp(-40 e_ee)`` and its factors."""
-    r = {f"r_{k}": np.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("root", "q", "alpha", "ee")}
-    r["r_im"] = r["r_root"] * r["r_q"] * r["r_alpha"] * r["r_ee"]
-    return r
-
-
-def env_imitation_reward(env: HumanoidEnv, cfg: ImitationConfig) -> dict[str, np.ndarray]:
-    """Eq. 10 for every environment at its current state against its current reference frame."""
-    L = env.lib
-    g = np.minimum(L.starts[env.clip] + env.frame, L.starts[env.clip + 1] - 1)
-    err = imitation_errors(env.bodies.pos, L.body_pos[g], env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:],
-                           L.qvel[g, 6:], env.end_effectors)
-    return imitation_reward(err, cfg)
-
-
-def reference_observations(lib: ReferenceLibrary, end_effectors) -> np.ndarray:
-    """Eq. 7 observation of every library frame: what the discriminator's reference samples are."""
-    bodies = Bodies(lib.body_pos, lib.body_vel, lib.body_angvel, quat=lib.body_quat)
-    return observation(lib.qpos, lib.qvel, bodies, end_effectors)
-
-
-def build_actor_critic(cfg: ExpertConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:
-    n = cfg.net
+def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:
     pol = EncoderDecoderPolicy(obs_dim, goal_dim, action_dim, n.latent_dim, tuple(n.encoder), tuple(n.decoder),
                                n.activation, n.log_std, n.learn_log_std)
     return ActorCritic(RunningNorm(obs_dim + goal_dim), pol, ValueNet(obs_dim + goal_dim, tuple(n.value), n.activation))
 
 
-def select_clips(data, pattern: str | None) -> list[str]:
-    from motok.data.dataset import MotionFile
-    with MotionFile(data, "motion-dataset") as mf:
-        names = list(mf.names)
-    if not pattern:
-        return names
-    chosen = [n for n in names if fnmatch.fnmatchcase(n, pattern)]
-    if not chosen:
-        raise ValueError(f"no clip of {data} matches {pattern!r} (e.g. {names[:3]})")
-    return chosen
+def imitation_mdp(hum: Humanoid, lib: ReferenceLibrary, sim: SimConfig, task: ImitationTaskConfig,
+                  action: ActionConfig, seed: int) -> TaskEnv:
+    env = HumanoidEnv(hum, sim)
+    return TaskEnv(env, ImitationTask(task, env, lib, np.random.default_rng(seed)), partial(pd_targets, action))
 
 
-def _t(a) -> torch.Tensor:
-    return torch.as_tensor(np.nan_to_num(np.asarray(a, dtype=np.float32)))  # a diverged env may hold non-finite rows
-
-
-def _split(state: dict, prefix: str) -> dict:
-    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-
-
-def mjcf_hash(hum: Humanoid) -> str:
-    return hashlib.sha256(Path(hum.path).read_bytes()).hexdigest()
+def _json_rng(g: np.random.Generator) -> str:
+    return json.dumps(g.bit_generator.state)
 
 
 class ExpertTrainer:
-    """PPO + AMP on a :class:`HumanoidEnv`; ``run`` drives iterations, checkpoints and logs."""
+    """PPO + AMP on the imitation task; one ``step`` is one collect-and-update iteration."""
 
-    def __init__(self, cfg: ExpertConfig, hum: Humanoid, lib: ReferenceLibrary):
+    def __init__(self, cfg: ExpertConfig, hum: Humanoid, lib: ReferenceLibrary, d: Dist | None = None):
+        d = d or Dist()
         self.cfg = cfg
-        torch.manual_seed(cfg.seed)
-        self.rng = np.random.default_rng(cfg.seed + 1)  # AMP sampling; the env has its own
-        self.env = HumanoidEnv(hum, lib, replace(cfg.env, seed=cfg.seed))
-        e = self.env
-        self.ac = build_actor_critic(cfg, e.obs_dim, e.goal_dim, e.action_dim)
+        torch.manual_seed(cfg.seed)  # the same initial weights on every rank (the runner reseeds ranks > 0 after)
+        seed = runner.rank_seed(cfg.seed, d.rank)
+        self.amp_rng = np.random.default_rng(seed + 1)
+        self.hum, self.lib = hum, lib
+        self.mdp = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, seed)
+        m = self.mdp
+        self.ac = build_actor_critic(cfg.net, m.obs_dim, m.goal_dim, m.action_dim)
         self.ppo = PPO(self.ac, cfg.ppo, cfg.iterations)
         use_amp = cfg.amp.enabled and cfg.w_style != 0
-        self.amp = AMP(cfg.amp, reference_observations(lib, e.end_effectors), lib.starts) if use_amp else None
+        self.amp = AMP(cfg.amp, reference_observations(lib, m.env.end_effectors), lib.starts) if use_amp else None
+        hooks = (AMPHook(self.amp, cfg.w_style, self.amp_rng),) if self.amp else ()
+        self.collector = Collector(m, self.ac, cfg.ppo.horizon, cfg.w_im, hooks)
+        self.samples_per_iteration = cfg.ppo.horizon * m.num_envs * d.world
         self.iteration, self.samples, self.wall = 0, 0, 0.0
+        self.dist = d
+        self.sampler = DifficultySampler(cfg.sampling, np.maximum(lib.lengths - (cfg.task.goal_frames + 1), 0))
 
     # ------------------------------------------------------------------ state
     def model_state(self) -> dict[str, torch.Tensor]:
@@ -168,167 +128,112 @@ class ExpertTrainer:
         return st
 
     def train_state(self) -> dict:
-        ts = {"iteration": self.iteration, "samples": self.samples, "wall": self.wall, "rng": rng_state(),
-              "ppo_opt": self.ppo.opt.state_dict(), "env_rng": json.dumps(self.env.rng.bit_generator.state),
-              "amp_rng": json.dumps(self.rng.bit_generator.state)}
+        ts = {"iteration": self.iteration, "samples": self.samples, "wall": self.wall,
+              "ppo_opt": self.ppo.opt.state_dict(), "sampler": self.sampler.state()}
         if self.amp is not None:
-            ts.update(amp_opt=self.amp.opt.state_dict(), replay=self.amp.replay.state())
+            ts["amp_opt"] = self.amp.opt.state_dict()
         return ts
 
-    def load(self, state: dict, ts: dict | None) -> None:
-        self.ac.load_state_dict(_split(state, "ac."))
+    def rank_state(self) -> dict:
+        rs = {"task_rng": _json_rng(self.mdp.task.rng), "amp_rng": _json_rng(self.amp_rng)}
         if self.amp is not None:
-            self.amp.disc.load_state_dict(_split(state, "disc."))
-        if ts is None:
+            rs["replay"] = self.amp.replay.state()
+        return rs
+
+    def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
+        self.ac.load_state_dict(split_state(model, "ac."))
+        if self.amp is not None:
+            self.amp.disc.load_state_dict(split_state(model, "disc."))
+        if shared is None:
             return
-        self.iteration, self.samples, self.wall = int(ts["iteration"]), int(ts["samples"]), float(ts["wall"])
-        self.ppo.opt.load_state_dict(ts["ppo_opt"])
-        set_rng_state(ts["rng"])
-        self.env.rng.bit_generator.state = json.loads(ts["env_rng"])
-        self.rng.bit_generator.state = json.loads(ts["amp_rng"])
+        self.iteration, self.samples, self.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
+        self.ppo.opt.load_state_dict(shared["ppo_opt"])
+        self.sampler.load(shared["sampler"])
+        self.mdp.task.clip_p = self.sampler.probabilities()
+        self.mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+        self.amp_rng.bit_generator.state = json.loads(rank["amp_rng"])
         if self.amp is not None:
-            self.amp.opt.load_state_dict(ts["amp_opt"])
-            self.amp.replay.load(ts["replay"])
+            self.amp.opt.load_state_dict(shared["amp_opt"])
+            self.amp.replay.load(rank["replay"])
 
     def start_segment(self) -> None:
-        """Fresh reference states for every environment: done at the start and after each checkpoint."""
-        self.obs, self.goal = self.env.reset()
-        N = self.env.num_envs
-        self.ep_ret, self.ep_rim, self.ep_len = np.zeros(N), np.zeros(N), np.zeros(N, dtype=np.int64)
+        self.collector.start()
 
     # ------------------------------------------------------------------ one iteration
-    def collect(self) -> tuple[Rollout, torch.Tensor, dict]:
-        c, env, ac = self.cfg, self.env, self.ac
-        T, N = c.ppo.horizon, env.num_envs
-        ro = Rollout(T, N, env.obs_dim + env.goal_dim, env.action_dim)
-        s, s2 = torch.zeros(T, N, env.obs_dim), torch.zeros(T, N, env.obs_dim)
-        r_im = torch.zeros(T, N)
-        for t in range(T):
-            x = _t(np.concatenate([self.obs, self.goal], 1))
-            ac.norm.update(x)
-            xn, a, logp, v = ac.act(x)
-            obs, goal, _, term, trunc, info = env.step(a.numpy())
-            bad = info["diverged"] | info["invalid_action"]
-            r_im[t] = torch.from_numpy(np.where(bad, 0.0, env_imitation_reward(env, c.imitation)["r_im"]))
-            ro.x[t], ro.actions[t], ro.logp[t], ro.values[t] = xn, a, logp, v
-            ro.terminated[t], ro.truncated[t] = torch.from_numpy(term), torch.from_numpy(trunc)
-            s[t], s2[t] = _t(self.obs), _t(obs)
-            if trunc.any():  # bootstrapping needs the value of the final observation, before the reset
-                with torch.no_grad():
-                    xf = ac.norm(_t(np.concatenate([obs[trunc], goal[trunc]], 1)))
-                    ro.final_values[t, torch.from_numpy(trunc)] = ac.value(xf)
-            done = term | trunc
-            if done.any():
-                obs, goal = env.reset(np.flatnonzero(done))
-            self.obs, self.goal = obs, goal
-        with torch.no_grad():
-            last_value = ac.value(ac.norm(_t(np.concatenate([self.obs, self.goal], 1))))
-        r_style = self.amp.reward(s.flatten(0, 1), s2.flatten(0, 1)).view(T, N) if self.amp else torch.zeros(T, N)
-        ro.rewards = c.w_im * r_im + (c.w_style * r_style if self.amp else 0.0)
-        stats = self._episodes(ro, r_im)
-        stats.update(r_im=float(r_im.mean()), r_style=float(r_style.mean()), reward=float(ro.rewards.mean()))
-        if self.amp is not None:
-            stats.update(self.amp.update(s.flatten(0, 1), s2.flatten(0, 1), self.rng))
-        return ro, last_value, stats
-
-    def _episodes(self, ro: Rollout, r_im: torch.Tensor) -> dict:
-        rets, rims, lens, succ = [], [], [], []
-        for t in range(len(ro.rewards)):
-            self.ep_ret += ro.rewards[t].numpy()
-            self.ep_rim += r_im[t].numpy()
-            self.ep_len += 1
-            done = (ro.terminated[t] | ro.truncated[t]).numpy()
-            if done.any():
-                rets += self.ep_ret[done].tolist()
-                rims += (self.ep_rim[done] / self.ep_len[done]).tolist()
-                lens += self.ep_len[done].tolist()
-                succ += ro.truncated[t].numpy()[done].tolist()  # ended without falling: clip end or time limit
-                self.ep_ret[done], self.ep_rim[done], self.ep_len[done] = 0.0, 0.0, 0
-        if not rets:
-            return {}
-        return {"episode_return": float(np.mean(rets)), "episode_r_im": float(np.mean(rims)),
-                "episode_seconds": float(np.mean(lens)) * self.env.dt, "success": float(np.mean(succ)),
-                "episodes": len(rets)}
-
     def step(self) -> dict:
         t0 = time.perf_counter()
-        ro, last_value, stats = self.collect()
+        ro, last_value, stats = self.collector.collect()
         t1 = time.perf_counter()
         stats.update(self.ppo.update(ro, last_value, self.iteration))
-        n = ro.rewards.numel()
+        n = self.samples_per_iteration
         self.iteration += 1
         self.samples += n
         dt = time.perf_counter() - t0
         self.wall += dt
         stats.update(iteration=self.iteration, samples=self.samples, wall_s=round(self.wall, 2),
                      samples_per_s=n / dt, rollout_s=t1 - t0, update_s=dt - (t1 - t0))
+        if self.sampler.due(self.iteration):
+            t2 = time.perf_counter()
+            stats.update(self.measure_difficulty())
+            self.wall += time.perf_counter() - t2
+            stats.update(wall_s=round(self.wall, 2), difficulty_s=time.perf_counter() - t2)
         return stats
 
+    def measure_difficulty(self) -> dict:
+        """Every training clip from frame 0 (each rank a share), then new start-clip probabilities."""
+        c, d, lib = self.cfg, self.dist, self.lib
+        mine = np.arange(d.rank, len(lib), d.world)
+        res = evaluate(self.hum, self.ac, lib, c.env, c.task, c.action, batch=c.sampling.eval_batch, clips=mine)
+        per = {k: v for part in gather(res["clips"], d) for k, v in part.items()}
+        stats = self.sampler.update(failures(per, lib.names), self.iteration)
+        self.mdp.task.clip_p = self.sampler.probabilities()
+        o = summarise(per)
+        stats.update(train_mpjpe_mm=o["mpjpe_mm"], train_seconds=o["seconds_played"] / len(per))
+        return stats
 
-def _spec(trainer: ExpertTrainer, hum: Humanoid) -> dict:
-    e, m = trainer.env, hum.model
-    return {"mjcf_sha256": mjcf_hash(hum), "obs_dim": e.obs_dim, "goal_dim": e.goal_dim, "action_dim": e.action_dim,
-            "action": {"kind": "residual PD target offsets (rad): q_hat = base + action_scale * a",
-                       "base": e.cfg.action_base, "action_scale": e.cfg.action_scale, "actuators": list(hum.layout.hinge_names),
-                       "ctrl_range": m.actuator_ctrlrange.tolist()},
-            "observation": "Eq. 7 s (heading frame) then Eq. 9 goal, normalised by ac.norm.{mean,var,count}",
-            "normaliser": ["ac.norm.mean", "ac.norm.var", "ac.norm.count"], "control_hz": 1.0 / e.dt}
+    def spec(self) -> dict:
+        e, hum = self.mdp.env, self.hum
+        m = hum.model
+        return {"obs_dim": e.obs_dim, "goal_dim": self.mdp.goal_dim, "action_dim": e.action_dim,
+                "action": {"kind": "residual PD target offsets (rad): q_hat = base + scale * a",
+                           "base": self.cfg.action.base, "scale": self.cfg.action.scale,
+                           "actuators": list(hum.layout.hinge_names), "ctrl_range": m.actuator_ctrlrange.tolist()},
+                "observation": "Eq. 7 s (heading frame) then Eq. 9 goal, normalised by ac.norm.{mean,var,count}",
+                "normaliser": ["ac.norm.mean", "ac.norm.var", "ac.norm.count"], "control_hz": e.control_hz,
+                "clips": list(self.lib.names)}
+
+
+def split_state(state: dict, prefix: str) -> dict:
+    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
 
 
 def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resume: bool = False,
           until: int | None = None, data=None, command: str | None = None) -> dict:
     """Train (or resume) an expert into ``run``; stops after ``until`` iterations if given."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(max(1, cfg.torch_threads))
-    try:
-        return _train(cfg, Path(run), hum, lib, resume, until, data, command)
-    finally:
-        torch.set_num_threads(threads)
+    names = subset(lib.names, cfg.eval_per_group) if cfg.eval_per_group else list(lib.names)
+    ids = np.array([lib.index(n) for n in names])
+
+    def eval_hook(tr: ExpertTrainer) -> dict:
+        return eval_metrics(evaluate(hum, tr.ac, lib, cfg.env, cfg.task, cfg.action, clips=ids,
+                                     batch=cfg.sampling.eval_batch))
+
+    return runner.train(lambda d: ExpertTrainer(cfg, hum, lib, d), cfg, run, hum, kind=KIND, resume=resume,
+                        until=until, data=data, command=command, evaluate=eval_hook, label="expert")
 
 
-def _train(cfg, run: Path, hum, lib, resume, until, data, command) -> dict:
-    run.mkdir(parents=True, exist_ok=True)
-    saved = load_bundle(run, KIND, with_train_state=True) if resume else None
-    if saved and saved[0]["extra"].get("mjcf_sha256") != mjcf_hash(hum):
-        raise CheckpointError(f"{run}: the checkpoint was trained on another humanoid (MJCF hash differs)")
-    if Path(hum.path).resolve() != (run / "humanoid.xml").resolve():
-        shutil.copyfile(hum.path, run / "humanoid.xml")
-    tr = ExpertTrainer(cfg, hum, lib)
-    if saved:
-        tr.load(saved[1], saved[2])
-    inputs = hash_inputs([data]) if data else {}
-    prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
-    extra = {**_spec(tr, hum), "data": str(data) if data else None, "clips": list(lib.names)}
-    log = MetricsLog(run / "metrics.jsonl", resume_from=tr.iteration if saved else None)
-    stop = min(cfg.iterations, until if until is not None else cfg.iterations)
-    per_it = cfg.ppo.horizon * tr.env.num_envs
+def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, split: str | None = None,
+                    humanoid=None, resume: bool = False, until: int | None = None) -> dict:
+    """``motok control expert train``: the humanoid (the run's own on resume, else ``humanoid`` or
+    the one built from ``data``, cached), the reference library of the chosen clips, then :func:`train`."""
+    from motok.sim.reference import humanoid_for, load_library
 
-    def save():
-        save_bundle(run, KIND, tr.model_state(), to_dict(cfg), prov, train_state=tr.train_state(),
-                    extra={**extra, "iteration": tr.iteration, "samples": tr.samples, "last_metrics": last})
-
-    last: dict = {}
-    tr.start_segment()
-    bar = _progress.make_progress("samples", "ret {task.fields[ret]} len {task.fields[len]}s succ {task.fields[succ]}")
-    with bar:
-        task = bar.add_task("expert", total=stop * per_it, completed=tr.iteration * per_it, ret="-", len="-", succ="-")
-        while tr.iteration < stop:
-            stats = tr.step()
-            if cfg.eval_every and tr.iteration % cfg.eval_every == 0:
-                from motok.control.evaluate import eval_metrics, evaluate
-                stats.update(eval_metrics(evaluate(cfg, hum, tr.ac, lib)))
-            last = {**last, **stats}
-            log.log(stats)
-            bar.update(task, advance=per_it, ret=f"{last.get('episode_return', 0):.1f}",
-                       len=f"{last.get('episode_seconds', 0):.2f}", succ=f"{last.get('success', 0):.2f}")
-            if tr.iteration % cfg.save_every == 0 or tr.iteration == stop:
-                save()
-                tr.start_segment()
-    if not (run / "bundle.json").exists():
-        save()
-    return {"run": str(run), "iterations": tr.iteration, "samples": tr.samples, "wall_s": round(tr.wall, 1),
-            **{k: round(v, 4) for k, v in last.items() if k in ("episode_return", "episode_seconds", "success",
-                                                                 "r_im", "samples_per_s")}}
+    run = Path(run)
+    if resume and (run / "humanoid.xml").exists():
+        hum = load_humanoid(run / "humanoid.xml")
+    else:
+        hum = load_humanoid(humanoid) if humanoid else humanoid_for(data)
+    lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips, split))
+    return train(cfg, run, hum, lib, resume=resume, until=until, data=data)
 
 
 def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
@@ -336,9 +241,43 @@ def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
     meta, state, _ = load_bundle(run, KIND)
     cfg = from_dict(ExpertConfig, meta["config"])
     hum = load_humanoid(run / "humanoid.xml")
-    if mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
+    if runner.mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
         raise CheckpointError(f"{run}/humanoid.xml does not match the checkpoint's MJCF hash")
     ex = meta["extra"]
-    ac = build_actor_critic(cfg, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
-    ac.load_state_dict(_split(state, "ac."))
+    ac = build_actor_critic(cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
+    ac.load_state_dict(split_state(state, "ac."))
     return cfg, hum, ac, meta
+
+
+def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None = None, render=None,
+                 termination: str | None = None, distance: float | None = None) -> dict:
+    """``motok control expert eval``: :func:`evaluate` the checkpoint in ``run`` on its training
+    clips (or the clips of ``data`` in ``split`` and/or matching the ``clips`` glob), with the
+    summary per content and per style, and write ``RUN/eval.json`` (``RUN/eval_SPLIT.json``) with
+    the checkpoint it measured (iteration, samples, training wall time, MJCF hash) and
+    provenance, so a number quoted from it can be traced to the weights and data that made it."""
+    from motok.sim.reference import load_library
+
+    run = Path(run)
+    cfg, hum, ac, meta = load_expert(run)
+    if termination is not None:
+        cfg.task.termination = termination
+    if distance is not None:
+        cfg.task.termination_distance = distance
+    src = data or meta["extra"].get("data")
+    if not src:
+        raise UserError(f"{run} does not record its dataset: pass --data")
+    names = select_clips(src, clips, split) if clips or split else meta["extra"]["clips"]
+    lib = load_library(hum, src, control_hz=cfg.env.control_hz, clips=names)
+    res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch)
+    res["groups"] = by_group(res["clips"])
+    ex = meta["extra"]
+    res["checkpoint"] = {"iteration": ex["iteration"], "samples": ex["samples"],
+                         "wall_s": ex.get("last_metrics", {}).get("wall_s"), "mjcf_sha256": ex["mjcf_sha256"]}
+    prov = Provenance(command=command_line(), config={"run": str(run), "clips": clips, "split": split,
+                                                        "task": asdict(cfg.task)},
+                      inputs=hash_inputs([src]))
+    res = {"kind": "control-expert-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
+    with atomic_path(run / (f"eval_{split}.json" if split else "eval.json")) as tmp:
+        tmp.write_text(json.dumps(res, indent=2))
+    return res

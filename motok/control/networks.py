@@ -2,15 +2,9 @@
 
 * :class:`RunningNorm`: per-feature running mean and variance (Chan et al.'s parallel update),
   held as buffers so the statistics are saved in the policy's state dict and travel with it.
-* :class:`MLPPolicy`: a Gaussian policy with an MLP mean.
-* :class:`EncoderDecoderPolicy`: the hybrid-latent paper's expert (appendix B.2): an encoder
-  ``E(s, s~) -> z`` and a decoder ``D(s, z) -> a``. The latent is a plain deterministic vector
-  with no regularisation (no KL, no quantisation); the structure is what the later distillation
-  into the hybrid latent prior reuses.
-* :class:`ValueNet`: an MLP critic on the same (normalised) input.
-
-Both policies have a state-independent log standard deviation, either fixed (a buffer) or
-learned (a parameter): fixed noise is what PHC and the paper's code use for imitation experts.
+* :class:`ValueNet`: an MLP critic on the (normalised) policy input.
+* :class:`ActorCritic`: normaliser + policy (``motok.control.policies``, which own their action
+  distributions) + value, the unit PPO optimises and a checkpoint stores.
 """
 
 from __future__ import annotations
@@ -18,8 +12,8 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.distributed as dist
 from torch import nn
-from torch.distributions import Normal
 
 ACTIVATIONS = {"relu": nn.ReLU, "elu": nn.ELU, "tanh": nn.Tanh, "silu": nn.SiLU}
 
@@ -55,11 +49,15 @@ class RunningNorm(nn.Module):
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
+        """Merge a batch; under ``torchrun`` the batch is every rank's, so all ranks keep one normaliser."""
         x = x.reshape(-1, x.shape[-1]).to(torch.float64)
-        n = float(len(x))
-        if n == 0:
-            return
-        m, v = x.mean(0), x.var(0, unbiased=False)
+        if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            n, m, v = self._global_moments(x)
+        else:
+            n = float(len(x))
+            if n == 0:
+                return
+            m, v = x.mean(0), x.var(0, unbiased=False)
         total = self.count + n
         delta = m - self.mean
         # Merge two (mean, M2) summaries exactly, so the order of batches barely matters.
@@ -68,56 +66,18 @@ class RunningNorm(nn.Module):
         self.var.copy_(m2 / total)
         self.count.fill_(total)
 
+    @staticmethod
+    def _global_moments(x: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+        sums = torch.cat([torch.tensor([float(len(x))], dtype=torch.float64), x.sum(0), (x * x).sum(0)])
+        dist.all_reduce(sums)
+        d = x.shape[1]
+        n = float(sums[0])
+        m = sums[1:1 + d] / n
+        return n, m, (sums[1 + d:] / n - m * m).clamp_min(0.0)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = (x - self.mean.to(x.dtype)) / torch.sqrt(self.var.to(x.dtype) + self.eps)
         return y.clamp(-self.clip, self.clip)
-
-
-class GaussianPolicy(nn.Module):
-    """Diagonal Gaussian over actions; subclasses define ``mean(x)``."""
-
-    def __init__(self, action_dim: int, log_std: float, learn_log_std: bool):
-        super().__init__()
-        init = torch.full((action_dim,), float(log_std))
-        if learn_log_std:
-            self.log_std = nn.Parameter(init)
-        else:
-            self.register_buffer("log_std", init)
-
-    def mean(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def dist(self, x: torch.Tensor) -> Normal:
-        mu = self.mean(x)
-        return Normal(mu, self.log_std.exp().expand_as(mu))
-
-
-class MLPPolicy(GaussianPolicy):
-    def __init__(self, in_dim: int, action_dim: int, hidden=(256, 256), activation="elu", log_std=-1.0,
-                 learn_log_std=True):
-        super().__init__(action_dim, log_std, learn_log_std)
-        self.net = mlp([in_dim, *hidden, action_dim], activation, out_gain=0.01)
-
-    def mean(self, x):
-        return self.net(x)
-
-
-class EncoderDecoderPolicy(GaussianPolicy):
-    """Appendix B.2 expert: ``z = E(s, s~)``, ``mu = D(s, z)``. The input is ``[s, s~]`` (normalised)."""
-
-    def __init__(self, obs_dim: int, goal_dim: int, action_dim: int, latent_dim: int = 64,
-                 encoder=(512, 256), decoder=(512, 256), activation="elu", log_std=-1.0, learn_log_std=False):
-        super().__init__(action_dim, log_std, learn_log_std)
-        self.obs_dim = obs_dim
-        self.encoder = mlp([obs_dim + goal_dim, *encoder, latent_dim], activation)
-        self.decoder = mlp([obs_dim + latent_dim, *decoder, action_dim], activation, out_gain=0.01)
-
-    def encode(self, x: torch.Tensor) -> torch.Tensor:
-        return self.encoder(x)
-
-    def mean(self, x):
-        s = x[..., :self.obs_dim]
-        return self.decoder(torch.cat([s, self.encode(x)], -1))
 
 
 class ValueNet(nn.Module):
@@ -132,14 +92,13 @@ class ValueNet(nn.Module):
 class ActorCritic(nn.Module):
     """What PPO optimises and a checkpoint stores: normaliser + policy + value."""
 
-    def __init__(self, norm: RunningNorm, policy: GaussianPolicy, value: ValueNet):
+    def __init__(self, norm: RunningNorm, policy: nn.Module, value: ValueNet):
         super().__init__()
         self.norm, self.policy, self.value = norm, policy, value
 
     @torch.no_grad()
     def act(self, x_raw: torch.Tensor, deterministic: bool = False):
-        """Normalised input, sampled (or mean) action, its log-probability and the state value."""
+        """Normalised input, sampled (or most likely) action, its log-probability and the state value."""
         xn = self.norm(x_raw)
-        d = self.policy.dist(xn)
-        a = d.mean if deterministic else d.sample()
-        return xn, a, d.log_prob(a).sum(-1), self.value(xn)
+        a, logp = self.policy.act(xn, deterministic)
+        return xn, a, logp, self.value(xn)

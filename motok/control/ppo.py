@@ -6,7 +6,9 @@ The tricks, in the order a rollout meets them (the names follow CleanRL's
 1. **Vectorised rollouts**: ``horizon`` steps of N environments per iteration (:class:`Rollout`).
 2. **Running observation normalisation** (``networks.RunningNorm``), updated during rollouts and
    stored in the buffer as the policy saw it, so old and new log-probabilities agree.
-3. **Gaussian actions** with a fixed or learned state-independent log-std (``networks``).
+3. **The policy owns its distribution** (``policies``): Gaussian actions with a fixed or learned
+   state-independent log-std, or categoricals over codebook indices; PPO only asks for
+   ``evaluate(x, a) -> (log-probability, entropy)``.
 4. **GAE** (:func:`gae`, gamma 0.99, lambda 0.95) that **bootstraps on time-limit truncation but
    not on termination**: a truncated step's target uses ``V(final observation)``, a terminated
    step's uses 0, and the advantage recursion stops at both (the next state is a reset).
@@ -18,6 +20,10 @@ The tricks, in the order a rollout meets them (the names follow CleanRL's
 10. **Global gradient-norm clipping**.
 11. **Learning-rate schedule** (:func:`learning_rate`: constant, linear or cosine decay).
 12. **Optional early stop** of the epochs when the approximate KL exceeds ``target_kl``.
+
+Under ``torchrun`` every rank collects its own environments and the gradients are averaged
+across ranks before clipping (as DDP would), and so is the KL the early stop reads, so all ranks
+take the same steps and keep identical weights.
 """
 
 from __future__ import annotations
@@ -26,8 +32,10 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.distributed as dist
 
 from motok.control.networks import ActorCritic
+from motok.errors import UserError
 
 
 @dataclass
@@ -102,16 +110,18 @@ def learning_rate(cfg: PPOConfig, iteration: int, total: int) -> float:
         return cfg.lr_min + (cfg.lr - cfg.lr_min) * (1.0 - frac)
     if cfg.lr_schedule == "cosine":
         return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1.0 + math.cos(math.pi * frac))
-    raise ValueError(f"unknown lr_schedule {cfg.lr_schedule!r}: use constant, linear or cosine")
+    raise UserError(f"unknown lr_schedule {cfg.lr_schedule!r}: use constant, linear or cosine")
 
 
 class Rollout:
-    """``(T, N, .)`` storage for one iteration. ``x`` is the normalised policy input."""
+    """``(T, N, .)`` storage for one iteration. ``x`` is the normalised policy input; actions keep
+    the policy's shape and dtype (``(A,)`` float for a Gaussian, ``(M,)`` int64 for codebook indices)."""
 
-    def __init__(self, horizon: int, num_envs: int, in_dim: int, action_dim: int):
+    def __init__(self, horizon: int, num_envs: int, in_dim: int, action_shape: tuple[int, ...],
+                 action_dtype: torch.dtype = torch.float32):
         T, N = horizon, num_envs
         self.x = torch.zeros(T, N, in_dim)
-        self.actions = torch.zeros(T, N, action_dim)
+        self.actions = torch.zeros(T, N, *action_shape, dtype=action_dtype)
         self.logp = torch.zeros(T, N)
         self.values = torch.zeros(T, N)
         self.rewards = torch.zeros(T, N)
@@ -126,13 +136,37 @@ class Rollout:
         return torch.where(self.truncated, self.final_values, nv)
 
 
+def world_size() -> int:
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+
+
+def average_gradients(params: list[torch.Tensor]) -> None:
+    """All-reduce mean of the gradients over ranks, flattened into one collective."""
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= world_size()
+    o = 0
+    for g in grads:
+        g.copy_(flat[o:o + g.numel()].view_as(g))
+        o += g.numel()
+
+
+def average_scalar(x: torch.Tensor) -> torch.Tensor:
+    y = x.detach().clone().reshape(1)
+    dist.all_reduce(y)
+    return y[0] / world_size()
+
+
 class PPO:
     """The update half of PPO: ``update(rollout, last_value, iteration)`` does epochs x minibatches."""
 
     def __init__(self, ac: ActorCritic, cfg: PPOConfig, total_iterations: int):
         self.ac, self.cfg, self.total = ac, cfg, total_iterations
-        params = [p for n, p in ac.named_parameters() if not n.startswith("norm.")]
-        self.opt = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
+        self.params = [p for n, p in ac.named_parameters() if not n.startswith("norm.")]
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps)
 
     def update(self, ro: Rollout, last_value: torch.Tensor, iteration: int,
                generator: torch.Generator | None = None) -> dict[str, float]:
@@ -142,6 +176,7 @@ class PPO:
             g["lr"] = lr
         adv, ret = gae(ro.rewards, ro.values, ro.next_values(last_value), ro.terminated, ro.truncated, c.gamma, c.lam)
         x, a, old_logp = ro.x.flatten(0, 1), ro.actions.flatten(0, 1), ro.logp.flatten(0, 1)
+        synced = world_size() > 1
         old_v, adv, ret = ro.values.flatten(), adv.flatten(), ret.flatten()
         B = len(x)
         mb = min(c.minibatch_size, B)
@@ -151,9 +186,8 @@ class PPO:
             perm = torch.randperm(B, generator=generator)
             for i in range(0, B - mb + 1, mb):  # a ragged last minibatch would be noisier: dropped
                 idx = perm[i:i + mb]
-                d = ac.policy.dist(x[idx])
-                logp = d.log_prob(a[idx]).sum(-1)
-                ent = d.entropy().sum(-1).mean()
+                logp, ent = ac.policy.evaluate(x[idx], a[idx])
+                ent = ent.mean()
                 A = adv[idx]
                 if c.norm_adv:
                     A = (A - A.mean()) / (A.std() + 1e-8)
@@ -162,12 +196,14 @@ class PPO:
                 loss = pl + c.value_coef * vl - c.entropy_coef * ent
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
+                if synced:
+                    average_gradients(self.params)
                 torch.nn.utils.clip_grad_norm_(self.opt.param_groups[0]["params"], c.max_grad_norm)
                 self.opt.step()
                 for k, v in zip(stats, (pl, vl, ent, kl, frac)):
                     stats[k] += float(v.detach())
                 n += 1
-            if c.target_kl is not None and float(kl) > c.target_kl:
+            if c.target_kl is not None and float(average_scalar(kl) if synced else kl) > c.target_kl:
                 break
         out = {k: v / max(n, 1) for k, v in stats.items()}
         var = float(ret.var())

@@ -13,6 +13,7 @@ from fnmatch import fnmatchcase
 from pathlib import Path
 
 from motok.data.bvh import MotionFormatError
+from motok.errors import MissingFileError
 
 SPLITS = ("train", "val", "test")
 
@@ -60,9 +61,9 @@ class Annotations:
     def load(cls, root: str | Path) -> "Annotations":
         root = Path(root)
         if not root.is_dir():
-            raise FileNotFoundError(f"annotations directory {root} does not exist")
+            raise MissingFileError(f"annotations directory {root} does not exist")
         if not (root / "texts").is_dir():
-            raise FileNotFoundError(f"{root}: no texts/ directory of captions (HumanML3D layout expected)")
+            raise MissingFileError(f"{root}: no texts/ directory of captions (HumanML3D layout expected)")
         splits: dict[str, list[tuple[str, int]]] = {}
         for split in SPLITS:
             f = root / f"{split}.txt"

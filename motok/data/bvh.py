@@ -16,12 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
+from motok.errors import MotokError
 from motok.rotations import euler_to_quat, qinv, qmul, qrot
 
 __all__ = ["MotionFormatError", "BvhMotion", "parse_bvh", "read_bvh", "forward_kinematics"]
 
 
-class MotionFormatError(ValueError):
+class MotionFormatError(MotokError, ValueError):
     """A motion input that cannot be read; the message names the file, the line or field, and
     what was expected there."""
 

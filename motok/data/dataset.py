@@ -16,6 +16,7 @@ import numpy as np
 
 from motok.artifacts import Provenance, open_artifact, provenance_of, read_strings, write_artifact, write_strings
 from motok.data.skeleton import Skeleton
+from motok.errors import UnknownNameError
 
 MOTION_KINDS = ("motion-dataset", "motion")
 
@@ -83,6 +84,22 @@ def write_motion(path, kind: str, provenance: Provenance, clips: list[Clip], ske
     return Path(path)
 
 
+def clip_index(names: list[str], clip, positions: dict[str, int] | None = None, where: str = "",
+               within: str = "", error: type[Exception] = UnknownNameError) -> int:
+    """Position of ``clip`` (a name in ``names`` or an index into it), else ``error`` with a one-line
+    message that suggests similar names. ``positions`` (name -> index) spares a linear search;
+    ``where`` prefixes the message and ``within`` follows the clip's name in it."""
+    if isinstance(clip, (int, np.integer)):
+        if not 0 <= int(clip) < len(names):
+            raise error(f"{where}clip index {clip} out of range (0..{len(names) - 1})")
+        return int(clip)
+    if clip not in (names if positions is None else positions):
+        near = [n for n in names if str(clip).lower() in n.lower()][:5]
+        hint = f"; similar: {near}" if near else f"; first clips: {names[:3]}"
+        raise error(f"{where}no clip named {clip!r}{within}{hint}")
+    return names.index(clip) if positions is None else positions[clip]
+
+
 class MotionFile:
     """Read access to a motion or motion-dataset artifact; clips load lazily by name or index."""
 
@@ -118,15 +135,7 @@ class MotionFile:
         return provenance_of(self.h5)
 
     def index(self, name_or_index) -> int:
-        if isinstance(name_or_index, (int, np.integer)):
-            if not 0 <= int(name_or_index) < len(self):
-                raise KeyError(f"{self.path}: clip index {name_or_index} out of range (0..{len(self) - 1})")
-            return int(name_or_index)
-        if name_or_index not in self._index:
-            near = [n for n in self.names if str(name_or_index).lower() in n.lower()][:5]
-            hint = f"; similar: {near}" if near else f"; first clips: {self.names[:3]}"
-            raise KeyError(f"{self.path}: no clip named {name_or_index!r}{hint}")
-        return self._index[name_or_index]
+        return clip_index(self.names, name_or_index, positions=self._index, where=f"{self.path}: ")
 
     def frames(self, key: str, clip) -> np.ndarray:
         i = self.index(clip)
@@ -158,7 +167,7 @@ class MotionFile:
 
     def stats(self) -> tuple[np.ndarray, np.ndarray]:
         if "stats" not in self.h5:
-            raise KeyError(f"{self.path}: a {self.kind} artifact has no statistics")
+            raise UnknownNameError(f"{self.path}: a {self.kind} artifact has no statistics")
         return self.h5["stats/mean"][()], self.h5["stats/std"][()]
 
 

@@ -24,18 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from motok.atomic import atomic_path
+from motok.data.dataset import MotionFile
 from motok.data.skeleton import Skeleton
-from motok.rotations import matrix_to_quat, qbetween, qinv, qmul, qrot, quat_to_euler
-
-
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Rotations R (T,3,3) minimising sum |R src_k - dst_k|^2; src (K,3), dst (T,K,3)."""
-    h = np.einsum("ki,tkj->tij", src, dst)  # covariance sum_k src_k dst_k^T
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.einsum("tji,tkj->tik", vt, u)))
-    fix = np.ones(u.shape[:-1])
-    fix[:, -1] = d
-    return np.einsum("tji,tj,tkj->tik", vt, fix, u)
+from motok.errors import UserError
+from motok.rotations import kabsch, matrix_to_quat, qbetween, qinv, qmul, qrot, quat_to_euler
 
 
 def _levels(parents: np.ndarray) -> list[np.ndarray]:
@@ -59,7 +51,7 @@ def bvh_pose(joints: np.ndarray, skeleton: Skeleton, offsets: np.ndarray):
 
     branching = [j for j in range(J) if len(children[j]) > 1]
     for j in branching:
-        r0 = _kabsch(rest[children[j]], bone[:1, children[j]])[0]
+        r0 = kabsch(rest[children[j]], bone[:1, children[j]])[0]
         rest[children[j]] = bone[0, children[j]] @ r0  # r0^T v: frame-0 vectors in the rest frame
 
     glob = np.zeros((T, J, 4))
@@ -76,7 +68,7 @@ def bvh_pose(joints: np.ndarray, skeleton: Skeleton, offsets: np.ndarray):
                 swing = qbetween(np.broadcast_to(rest[c], target.shape), target)
                 glob[:, j] = qmul(parent_rot, swing)
             else:
-                glob[:, j] = matrix_to_quat(_kabsch(rest[kids], bone[:, kids]))
+                glob[:, j] = matrix_to_quat(kabsch(rest[kids], bone[:, kids]))
     local = glob.copy()
     local[:, 1:] = qmul(qinv(glob[:, parents[1:]]), glob[:, 1:])
     return rest, local
@@ -96,6 +88,13 @@ def export_bvh(path: str | Path, joints: np.ndarray, skeleton: Skeleton, offsets
     return Path(path)
 
 
+def export_clip(artifact, clip, path: str | Path, order: str = "ZXY") -> Path:
+    """Clip ``clip`` (name or index) of a motion or motion-dataset artifact as BVH in centimetres."""
+    with MotionFile(artifact) as mf:
+        c = mf.clip(clip)
+        return export_bvh(path, c.joints, mf.skeleton, mf.offsets, mf.fps, order=order)
+
+
 def write_bvh(path, names, parents, offsets, rotations, root_positions, fps, order="ZXY",
               end_sites=None) -> None:
     """Write BVH as Blender's importer reads it: one keyword per line, braces on their own lines,
@@ -108,7 +107,7 @@ def write_bvh(path, names, parents, offsets, rotations, root_positions, fps, ord
     root_positions = np.asarray(root_positions, dtype=np.float64)
     J, T, order = len(names), len(rotations), str(order).upper()
     if sorted(order) != ["X", "Y", "Z"]:
-        raise ValueError(f"order must be a permutation of XYZ, got {order!r}")
+        raise UserError(f"order must be a permutation of XYZ, got {order!r}")
     if parents.shape != (J,) or offsets.shape != (J, 3) or rotations.shape != (T, J, 4) \
             or root_positions.shape != (T, 3):
         raise ValueError(f"{J} names but parents {parents.shape}, offsets {offsets.shape} (J,3), "

@@ -28,6 +28,7 @@ from motok.data.dataset import Clip, write_motion
 from motok.data.root import resolve_data_root
 from motok.data.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
 from motok.data.sources import MotionSource, iter_sources, load_npy_positions
+from motok.errors import MissingFileError, UnknownNameError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
@@ -176,7 +177,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
     inputs = [resolve_input(p, data_root) for p in cfg.inputs]
     for p in inputs:
         if not p.exists():
-            raise FileNotFoundError(f"input {p} does not exist")
+            raise MissingFileError(f"input {p} does not exist")
     ann = Annotations.load(resolve_input(cfg.annotations, data_root)) if cfg.annotations else None
     skeleton = load_skeleton(cfg.skeleton) if cfg.skeleton else None
     skipped: list[dict] = []
@@ -244,7 +245,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                                              loaded[0].name)
             ref_clip = next((c for c in loaded if c.name == ref), None)
             if ref_clip is None:
-                raise KeyError(f"reference_clip {ref!r} is not among the loaded clips")
+                raise UnknownNameError(f"reference_clip {ref!r} is not among the loaded clips")
             offsets = skeleton_offsets(ref_clip.positions[0], skeleton)
 
             task2 = progress.add_task("features", total=sum(len(c.positions) for c in loaded))

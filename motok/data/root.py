@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from motok.errors import MotokError
+
 DOWNLOAD_HINT = (
     "Download the Bandai-Namco Research motion datasets from "
     "github.com/BandaiNamcoResearchInc/Bandai-Namco-Research-Motiondataset, lay them out as "
@@ -14,7 +16,7 @@ DOWNLOAD_HINT = (
 )
 
 
-class DataRootError(FileNotFoundError):
+class DataRootError(MotokError, FileNotFoundError):
     pass
 
 

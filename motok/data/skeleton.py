@@ -16,10 +16,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from motok.errors import MotokError
+
 BUILTIN_DIR = Path(__file__).with_name("skeletons")
 
 
-class SkeletonError(ValueError):
+class SkeletonError(MotokError, ValueError):
     pass
 
 

@@ -23,6 +23,7 @@ from typing import Iterator
 import numpy as np
 
 from motok.data.bvh import MotionFormatError, parse_bvh
+from motok.errors import MissingFileError
 
 __all__ = ["MotionSource", "iter_sources", "count_sources", "load_npy_positions", "ARCHIVE_SUFFIXES"]
 
@@ -127,7 +128,7 @@ def iter_sources(path, *, pattern: str = "*", kinds=("bvh", "npy")) -> Iterator[
     at once; an input with nothing to yield raises :class:`MotionFormatError` at the end."""
     path, kinds = Path(path), tuple(kinds)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file or directory")
+        raise MissingFileError(f"{path}: no such file or directory")
     if path.is_dir():
         what = "directory"
     elif path.suffix.lower() in KIND_OF_SUFFIX:
@@ -190,7 +191,7 @@ def count_sources(path, *, pattern: str = "*", kinds=("bvh", "npy")) -> int | No
     compressed tars, whose listing costs a full decompression."""
     path, kinds = Path(path), tuple(kinds)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file or directory")
+        raise MissingFileError(f"{path}: no such file or directory")
     if path.is_dir():
         return len(_dir_files(path, pattern, kinds))
     kind = None if path.suffix.lower() in KIND_OF_SUFFIX else _input_type(path)

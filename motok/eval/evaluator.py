@@ -33,6 +33,7 @@ from motok.artifacts import Provenance, command_line, hash_inputs, read_strings
 from motok.checkpoint import MetricsLog, load_bundle, register_kind, save_bundle, sha256_state
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
+from motok.errors import MotokError
 from motok.features.humanml3d import NUM_CONTACTS
 
 KIND = "evaluator"
@@ -66,7 +67,7 @@ class EvaluatorConfig:
     threads: int = 1  # torch threads; on a shared 2-core machine one thread ran 5x faster than two
 
 
-class EvaluatorError(ValueError):
+class EvaluatorError(MotokError, ValueError):
     pass
 
 

@@ -15,7 +15,8 @@ import numpy as np
 
 from motok import progress as _progress
 from motok.eval.evaluator import EvaluatorError
-from motok.eval.report import MotionSet, T2MConfig, motion_set
+from motok.eval.protocol import T2MConfig
+from motok.eval.sets import MotionSet, motion_set
 
 
 def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MConfig, out: Path | None,

@@ -15,6 +15,11 @@ of the motion array.
 - MModality: mean distance between pairs of samples generated for the same caption.
 - Every metric is repeated (20 times) and reported as mean and 95% confidence interval
   ``1.96 * std / sqrt(repeats)``.
+
+The reconstruction errors at the end (:func:`mpjpe`, :func:`velocity_error`,
+:func:`acceleration_error`) are the one implementation every stage uses (tokenizer eval,
+``eval recon``, control eval). Importing this module costs numpy only (scipy is imported by the
+FID functions when called), so any stage can use it without pulling in the evaluator.
 """
 
 from __future__ import annotations
@@ -22,7 +27,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from scipy import linalg
 
 R_PRECISION_BATCH = 32
 DIVERSITY_TIMES = 300
@@ -92,6 +96,8 @@ def frechet_distance(mu1, sigma1, mu2, sigma2, eps: float = 1e-6) -> float:
     tiny imaginary part, which is dropped. A singular product (fewer samples than dimensions)
     gets ``eps`` added to both diagonals first, as in the reference implementation.
     """
+    from scipy import linalg
+
     mu1, mu2 = np.atleast_1d(mu1), np.atleast_1d(mu2)
     s1, s2 = np.atleast_2d(sigma1), np.atleast_2d(sigma2)
     if mu1.shape != mu2.shape or s1.shape != s2.shape:
@@ -122,6 +128,8 @@ def fid(x: np.ndarray, y: np.ndarray) -> float:
 def fid_gaussians_closed_form(mu1, cov1, mu2, cov2) -> float:
     """Closed form for commuting covariances (e.g. diagonal): the sqrtm of the product is the
     product of the square roots; used to check :func:`frechet_distance`."""
+    from scipy import linalg
+
     r1, r2 = linalg.sqrtm(cov1).real, linalg.sqrtm(cov2).real
     d = np.asarray(mu1) - np.asarray(mu2)
     return float(d @ d + np.trace(cov1) + np.trace(cov2) - 2.0 * np.trace(r1 @ r2))
@@ -178,7 +186,7 @@ def mean_ci(values, z: float = 1.96) -> tuple[float, float]:
 # --------------------------------------------------------------------------- reconstruction
 
 def mpjpe(pred: np.ndarray, gt: np.ndarray, root_relative: bool = True) -> np.ndarray:
-    """Per-frame mean per-joint position error in mm of ``(T, J, 3)`` joints in metres.
+    """``(T,)`` per-frame mean per-joint position error in mm of ``(T, J, 3)`` joints in metres.
 
     ``root_relative``: both skeletons are moved to their own root first (the MoMask/HumanML3D
     convention), which ignores drift of the integrated root trajectory.
@@ -189,9 +197,17 @@ def mpjpe(pred: np.ndarray, gt: np.ndarray, root_relative: bool = True) -> np.nd
     return np.linalg.norm(p - g, axis=-1).mean(-1) * 1000.0
 
 
+def velocity_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(T - 1,)`` per-frame mean norm of the difference of first differences (mm/frame) of
+    ``(T, J, 3)`` joints in metres; pass ``x[:, :1]`` for the root alone."""
+    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    return np.linalg.norm(np.diff(p, axis=0) - np.diff(g, axis=0), axis=-1).mean(-1) * 1000.0
+
+
 def acceleration_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Per-frame mean norm of the difference of second differences (mm/frame^2) of global joints,
-    as in HMR-style video work: it measures jitter the position error averages away."""
+    """``(T - 2,)`` per-frame mean norm of the difference of second differences (mm/frame^2) of
+    ``(T, J, 3)`` joints in metres, as in HMR-style video work: it measures jitter the position
+    error averages away."""
     p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
     ap = p[2:] - 2 * p[1:-1] + p[:-2]
     ag = g[2:] - 2 * g[1:-1] + g[:-2]

@@ -103,6 +103,7 @@ def artifact_physical(path, split: str | None = None, clips=None, **kw) -> dict:
     ``split`` keeps one split (only meaningful for datasets); ``clips`` a list of names or indices.
     """
     from motok.data.dataset import MotionFile
+    from motok.errors import UnknownNameError
     from motok.progress import make_progress
 
     total = PhysicalSums()
@@ -111,7 +112,7 @@ def artifact_physical(path, split: str | None = None, clips=None, **kw) -> dict:
         if clips is not None:
             which = [mf.index(c) for c in clips]
         if not which:
-            raise KeyError(f"{path}: no clip to measure (split {split!r}; splits: {sorted(set(mf.splits))})")
+            raise UnknownNameError(f"{path}: no clip to measure (split {split!r}; splits: {sorted(set(mf.splits))})")
         sk = mf.skeleton
         feet = (tuple(sk.feet_left), tuple(sk.feet_right))
         with make_progress("clips") as bar:

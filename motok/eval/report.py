@@ -1,221 +1,30 @@
-"""The text-to-motion protocol of Guo et al. (CVPR 2022) as T2M-GPT (Zhang et al. 2023, Table 1)
-reports it, on any motion-dataset with a motok evaluator (``motok eval t2m``).
+"""``motok eval t2m`` and ``motok eval recon``: which rows a report has, and the report itself
+(JSON, Markdown for docs/results.md, rich tables for the terminal).
 
 Rows: real motion, tokenizer reconstruction, generation (a GPT with predicted or ground-truth
-length, or any ``motion`` artifact). Each row is measured ``repeats`` times (20) against the real
-motion of the split; a repeat draws, as the reference evaluation loader does, one caption per clip
-and a crop of each clip to a multiple of 4 frames (one unit shorter with probability 1/3, at a
-random offset), then R-precision/MM-Dist in shuffled batches of 32, FID against that repeat's
-real crops, Diversity over 300 pairs and, where several samples per caption exist, MModality.
-Mean and 95% CI per metric; the physical metrics (:mod:`motok.eval.physical`) are deterministic
-and reported once per row.
+length, :mod:`motok.eval.generate`), or any ``motion`` artifact; each is a motion set
+(:mod:`motok.eval.sets`) measured by the protocol of :mod:`motok.eval.protocol`.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from motok import progress as _progress
 from motok.data.dataset import MotionFile
 from motok.eval import metrics as M
-from motok.eval.evaluator import UNIT, EvaluatorError, LoadedEvaluator, load_evaluator, load_split
-from motok.eval.physical import PhysicalSums, clip_sums
-from motok.features.humanml3d import recover_from_ric
+from motok.eval.evaluator import EvaluatorError, load_evaluator
+from motok.eval.generate import generated_set
+from motok.eval.protocol import T2MConfig, evaluate_rows, physical_of
+from motok.eval.sets import motion_set, real_set, recon_set
+
+__all__ = ["COLUMNS", "PHYSICAL", "T2MConfig", "headers", "markdown", "recon", "rich_table", "save_report", "t2m"]
 
 
-@dataclass
-class T2MConfig:
-    split: str = "test"
-    repeats: int = 20
-    batch: int = 32  # R-precision batch: 1 true caption and 31 others
-    top_k: int = 3
-    diversity_times: int = 300
-    mm_pairs: int = 10  # MModality pairs per caption (reference: 10 of 30 samples)
-    unit_crop: bool = True  # the reference loader's crop to a multiple of 4 frames
-    seed: int = 0
-    physical: bool = True
-    # Generation with --gpt: sets of one sample per clip (the protocol regenerates every repeat:
-    # gen_sets = repeats; fewer sets are reused in turn) and the MModality samples.
-    gen_sets: int = 20
-    gt_length: bool = False  # target the ground-truth length instead of stopping at End
-    mm_captions: int = 100
-    mm_samples: int = 30
-    temperature: float = 1.0
-    top_k_sampling: int | None = None
-    top_p: float | None = None
-    gen_batch: int = 64
-    threads: int = 1  # torch threads (one is fastest on a shared 2-core machine)
-
-
-@dataclass
-class MotionSet:
-    """One row's motions: raw features per clip, each clip's captions, and how repeats use them."""
-    name: str
-    clips: list[np.ndarray]
-    captions: list[list[str]]
-    sample: np.ndarray | None = None  # per clip; repeat r uses the clips with sample == r mod (max + 1)
-    mm_groups: list[list[int]] = field(default_factory=list)  # clip indices generated for one caption
-    mm_clips: list[np.ndarray] = field(default_factory=list)
-    joints: list[np.ndarray] | None = None  # for the physical metrics (else recovered from features)
-    extra: dict = field(default_factory=dict)
-
-    def for_repeat(self, r: int) -> list[int]:
-        if self.sample is None:
-            return list(range(len(self.clips)))
-        return list(np.flatnonzero(self.sample == r % (int(self.sample.max()) + 1)))
-
-
-def unit_crop(n: int, rng: np.random.Generator) -> tuple[int, int]:
-    """The reference evaluation crop: length a multiple of 4, one unit less 1 time in 3, random start."""
-    if n < 2 * UNIT:
-        return 0, n
-    m = (n // UNIT - int(rng.random() < 1 / 3)) * UNIT
-    return int(rng.integers(0, n - m + 1)), m
-
-
-class Embedder:
-    """Motion embeddings of crops, cached: a crop recurs across repeats (few offsets per clip)."""
-
-    def __init__(self, ev: LoadedEvaluator):
-        self.ev, self.cache = ev, {}
-
-    def __call__(self, key: str, clips: list[np.ndarray], idx: list[int], rng, crop: bool) -> np.ndarray:
-        spans = [unit_crop(len(clips[i]), rng) if crop else (0, len(clips[i])) for i in idx]
-        keys = [(key, i, s, m) for i, (s, m) in zip(idx, spans)]
-        todo = [k for k in dict.fromkeys(keys) if k not in self.cache]
-        if todo:
-            vecs = self.ev.motions([clips[i][s:s + m] for _, i, s, m in todo])
-            self.cache.update(zip(todo, vecs))
-        return np.stack([self.cache[k] for k in keys])
-
-
-def physical_of(ms: MotionSet, fps: float, feet) -> dict:
-    tot = PhysicalSums()
-    for k, c in enumerate(ms.clips):
-        j = ms.joints[k] if ms.joints is not None else recover_from_ric(np.asarray(c, np.float64), ms.extra["num_joints"])
-        tot.add(clip_sums(j, fps, feet))
-    return tot.result()
-
-
-def evaluate_rows(ev: LoadedEvaluator, ref: MotionSet, rows: list[MotionSet], cfg: T2MConfig) -> list[dict]:
-    """Every row against the reference (real motion of the split), ``cfg.repeats`` times."""
-    emb = Embedder(ev)
-    per_row = [{} for _ in rows]
-    with _progress.make_progress("repeats") as bar:
-        task = bar.add_task("t2m", total=cfg.repeats * len(rows))
-        for r in range(cfg.repeats):
-            rng = np.random.default_rng([cfg.seed, r])
-            ref_emb = emb("real", ref.clips, list(range(len(ref.clips))), rng, cfg.unit_crop)
-            for k, row in enumerate(rows):
-                rrng = np.random.default_rng([cfg.seed, r, k + 1])
-                idx = row.for_repeat(r)
-                if len(idx) < 2:
-                    raise EvaluatorError(f"row {row.name}: {len(idx)} motion(s) in repeat {r}; need 2+")
-                key = "real" if row is ref else f"row{k}"  # the real row shares the reference's crops
-                m = emb(key, row.clips, idx, rrng, cfg.unit_crop)
-                caps = [row.captions[i][rrng.integers(len(row.captions[i]))] for i in idx]
-                t = ev.texts(caps)
-                rp, mmd = M.r_precision(t, m, rrng, cfg.batch, cfg.top_k)
-                vals = {f"R@{j + 1}": float(rp[j]) for j in range(cfg.top_k)}
-                vals.update({"FID": M.fid(ref_emb, m), "MM-Dist": mmd,
-                             "Diversity": M.diversity(m, rrng, cfg.diversity_times)})
-                if row.mm_groups:
-                    g = emb(f"row{k}/mm", row.mm_clips, list(range(len(row.mm_clips))), rrng, cfg.unit_crop)
-                    vals["MModality"] = M.multimodality([g[ix] for ix in row.mm_groups], rrng, cfg.mm_pairs)
-                for name, v in vals.items():
-                    per_row[k].setdefault(name, []).append(v)
-                bar.advance(task)
-    out = []
-    for row, vals in zip(rows, per_row):
-        res = {"name": row.name, "motions": len(row.for_repeat(0)),
-               "metrics": {n: dict(zip(("mean", "ci"), M.mean_ci(v))) for n, v in vals.items()},
-               "repeats": {n: v for n, v in vals.items()}, **row.extra}
-        if row.mm_groups:
-            res["mmodality_counts"] = {"captions": len(row.mm_groups),
-                                       "samples_per_caption": int(np.median([len(g) for g in row.mm_groups])),
-                                       "pairs_per_caption": cfg.mm_pairs}
-        out.append(res)
-    return out
-
-
-# --------------------------------------------------------------------------- row sources
-
-def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
-    with MotionFile(data, "motion-dataset") as mf:
-        sd = load_split(mf, split)
-        if len(sd.clips) < 2:
-            raise KeyError(f"{data}: split {split!r} has {len(sd.clips)} captioned clip(s) (splits: {sorted(set(mf.splits))})")
-        idx = [mf.index(n) for n in sd.names]
-        joints = [mf.frames("joints", i) for i in idx]
-        sk = mf.skeleton
-        info = {"fps": mf.fps, "feet": (tuple(sk.feet_left), tuple(sk.feet_right)), "num_joints": sk.num_joints,
-                "names": sd.names, "labels": sd.labels}
-    return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints}), info
-
-
-def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: int | None = None) -> MotionSet:
-    """Every clip through the tokenizer (cut to a multiple of its rate, as ``tokenize eval``)."""
-    import torch
-
-    from motok.tokenizer.train import load_tokenizer
-    model, meta = load_tokenizer(tokenizer)
-    m = num_codebooks or model.num_codebooks
-    clips, caps, err = [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
-    with torch.no_grad():
-        for c, cap, j in zip(ref.clips, ref.captions, ref.joints):
-            T = len(c) // model.rate * model.rate
-            if T < UNIT:
-                continue
-            codes = model.encode_features(torch.from_numpy(np.asarray(c[:T]))[None], m)[..., :m]
-            pred = model.decode_features(codes, m)[0].numpy()
-            clips.append(pred)
-            caps.append(cap)
-            pj = recover_from_ric(pred.astype(np.float64), num_joints)
-            gj = recover_from_ric(np.asarray(c[:T], np.float64), num_joints)
-            err["mpjpe"].append(M.mpjpe(pj, gj))
-            err["mpjpe_global"].append(M.mpjpe(pj, gj, root_relative=False))
-            err["accel"].append(M.acceleration_error(pj, gj))
-    recon = {"mpjpe_mm": float(np.concatenate(err["mpjpe"]).mean()),
-             "mpjpe_global_mm": float(np.concatenate(err["mpjpe_global"]).mean()),
-             "accel_error_mm": float(np.concatenate(err["accel"]).mean())}
-    return MotionSet(f"reconstruction ({Path(tokenizer).name})", clips, caps,
-                     extra={"num_joints": num_joints, "recon": recon, "tokenizer": str(tokenizer),
-                            "tokenizer_sha256": meta["model_sha256"]})
-
-
-def motion_set(path: Path, name: str | None = None) -> MotionSet:
-    """Any ``motion`` artifact. Clips labelled ``role: mm`` (or, without roles, several ``sample``
-    labels per caption) feed MModality; ``sample`` labels spread the others over the repeats."""
-    with MotionFile(path) as mf:
-        sd = load_split(mf, None)
-        if not sd.clips:
-            raise KeyError(f"{path}: no clip has a caption; the t2m metrics need the text of every motion")
-        idx = [mf.index(n) for n in sd.names]
-        joints = [mf.frames("joints", i) for i in idx]
-        J = mf.skeleton.num_joints
-    labels = [json.loads(x) if x else {} for x in sd.labels]
-    roles = [lab.get("role", "") for lab in labels]
-    main = [k for k, r in enumerate(roles) if r != "mm"]
-    mm = [k for k, r in enumerate(roles) if r == "mm"] if "mm" in roles else \
-        [k for k in main if "sample" in labels[k]]
-    groups: dict[tuple, list[int]] = {}
-    for pos, k in enumerate(mm):
-        # By source clip too: two clips with one caption text are still two MModality captions.
-        groups.setdefault((labels[k].get("source"), labels[k].get("text", sd.captions[k][0])), []).append(pos)
-    samples = [labels[k].get("sample") for k in main]
-    sample = np.array(samples, dtype=np.int64) if all(s is not None for s in samples) else None
-    return MotionSet(name or Path(path).stem, [sd.clips[k] for k in main], [sd.captions[k] for k in main],
-                     sample=sample, mm_groups=[g for g in groups.values() if len(g) > 1],
-                     mm_clips=[sd.clips[k] for k in mm], joints=[joints[k] for k in main],
-                     extra={"num_joints": J, "motions_file": str(path)})
-
-
-# --------------------------------------------------------------------------- the protocol
+# --------------------------------------------------------------------------- the report
 
 def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = None, gpt: Path | None = None,
         motions: list[Path] = (), save_generated: Path | None = None, real: bool = True) -> dict:
@@ -234,7 +43,6 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
     if tokenizer is not None:
         rows.append(recon_set(ref, Path(tokenizer), info["num_joints"]))
     if gpt is not None:
-        from motok.eval.generate import generated_set
         rows.append(generated_set(Path(gpt), tokenizer, ref, cfg, save_generated))
     rows += [motion_set(Path(p)) for p in motions]
     if not rows:
@@ -293,6 +101,15 @@ def markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def save_report(report: dict, json_path: Path | None = None, md_path: Path | None = None) -> None:
+    """Write the full report as JSON and/or its table as Markdown (``--out-json``, ``--out-md``)."""
+    for path, text in ((json_path, lambda: json.dumps(report, indent=2, default=str)),
+                       (md_path, lambda: markdown(report) + "\n")):
+        if path is not None:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            Path(path).write_text(text())
+
+
 def rich_table(report: dict):
     """Two rich tables (the T2M metrics, then physical and reconstruction) so each fits a terminal."""
     from rich.console import Group
@@ -326,7 +143,7 @@ def recon(data: Path, split: str = "test", tokenizer: Path | None = None, motion
     with MotionFile(motions) as mf:
         pairs = [(i, by_name[n]) for i, n in enumerate(mf.names) if n in by_name]
         if not pairs:
-            raise KeyError(f"{motions}: no clip named like a {split} clip of {data} (first: {mf.names[:3]})")
+            raise EvaluatorError(f"{motions}: no clip named like a {split} clip of {data} (first: {mf.names[:3]})")
         for i, gt in pairs:
             pred = mf.frames("joints", i)
             T = min(len(pred), len(gt))

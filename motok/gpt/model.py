@@ -28,6 +28,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from motok.config import ConfigError
+
 
 @dataclass
 class GPTConfig:
@@ -61,7 +63,7 @@ class CausalSelfAttention(nn.Module):
     def __init__(self, cfg: GPTConfig):
         super().__init__()
         if cfg.dim % cfg.heads:
-            raise ValueError(f"model.dim {cfg.dim} is not divisible by model.heads {cfg.heads}")
+            raise ConfigError(f"model.dim {cfg.dim} is not divisible by model.heads {cfg.heads}")
         self.heads, self.dropout = cfg.heads, cfg.dropout
         self.qkv = nn.Linear(cfg.dim, 3 * cfg.dim)
         self.proj = nn.Linear(cfg.dim, cfg.dim)
@@ -105,7 +107,7 @@ class MotionGPT(nn.Module):
     def __init__(self, cfg: GPTConfig, codebook_size: int, text_dim: int):
         super().__init__()
         if cfg.block_size < 2:
-            raise ValueError("model.block_size must be >= 2 (the text and one code)")
+            raise ConfigError("model.block_size must be >= 2 (the text and one code)")
         self.cfg, self.codebook_size, self.text_dim = cfg, codebook_size, text_dim
         self.end_id, self.pad_id = codebook_size, codebook_size + 1
         self.tok_emb = nn.Embedding(codebook_size + 2, cfg.dim)

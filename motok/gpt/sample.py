@@ -179,11 +179,9 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
 
     renders, bvhs = [], []
     if render is not None:
-        from motok.render.stick import render_motion
-        feet = list(skeleton.feet_left) + list(skeleton.feet_right)
+        from motok.render.clip import render_clip
         for k, c in enumerate(clips):
-            renders.append(str(render_motion(c.joints, skeleton.parents, _numbered(Path(render), names, k), fps=fps,
-                                             title=c.captions[0][0], contacts=c.features[:, -4:], foot_joints=feet)))
+            renders.append(str(render_clip(c, skeleton, _numbered(Path(render), names, k), fps)))
     if bvh is not None:
         from motok.data.export import export_bvh
         for k, c in enumerate(clips):

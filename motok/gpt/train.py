@@ -37,6 +37,7 @@ from motok.checkpoint import MetricsLog, load_bundle, register_kind
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
+from motok.errors import MotokError
 from motok.optim import OptimConfig, lr_factor
 from motok.gpt.model import GPTConfig, MotionGPT
 from motok.text.cache import TextEmbeddingCache
@@ -47,7 +48,7 @@ register_kind(KIND, (1,))
 IGNORE = -100
 
 
-class GPTError(ValueError):
+class GPTError(MotokError, ValueError):
     pass
 
 

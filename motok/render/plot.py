@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from motok.atomic import atomic_path
+from motok.errors import MissingFileError, UserError
 
 
 def _is_number(v) -> bool:
@@ -18,6 +19,8 @@ def _is_number(v) -> bool:
 
 def read_metrics(path: str | os.PathLike) -> list[dict]:
     """The JSON objects of a JSONL file; malformed or non-object lines are skipped with a warning."""
+    if not Path(path).is_file():
+        raise MissingFileError(f"{path}: no such file")
     records = []
     with open(path, encoding="utf-8") as fh:
         for lineno, line in enumerate(fh, 1):
@@ -75,7 +78,7 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     below, ``wall_s`` on top), read off by interpolation.
     """
     if not 0.0 <= smooth < 1.0:
-        raise ValueError(f"smooth must be in [0, 1), got {smooth}")
+        raise UserError(f"smooth must be in [0, 1), got {smooth}")
     if isinstance(jsonl_path_or_records, (str, os.PathLike)):
         records = read_metrics(jsonl_path_or_records)
         source = str(jsonl_path_or_records)
@@ -93,11 +96,11 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     if x2:
         pairs = sorted({(r[x], r[x2]) for r in records if _is_number(r.get(x)) and _is_number(r.get(x2))})
         if len(pairs) < 2 or any(b[1] < a[1] for a, b in zip(pairs, pairs[1:])):
-            raise ValueError(f"{source}: {x2!r} must grow with {x!r} to label a second axis")
+            raise UserError(f"{source}: {x2!r} must grow with {x!r} to label a second axis")
         top = tuple(map(list, zip(*pairs)))
     empty = [k for k, pts in series.items() if not pts]
     if not keys or len(empty) == len(keys):
-        raise ValueError(f"{source}: no numeric values to plot for keys {keys or '(none found)'}")
+        raise UserError(f"{source}: no numeric values to plot for keys {keys or '(none found)'}")
 
     # A bare Figure renders through Agg without touching pyplot's global backend or state,
     # so this works headless and does not disturb an interactive session that calls it.
@@ -138,3 +141,13 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     return out
+
+
+def plot_run(run_or_jsonl: str | os.PathLike, out_png: str | os.PathLike | None = None,
+             keys: Sequence[str] | None = None, x: str = "iteration", **kw) -> Path:
+    """``motok plot``: a run folder (its ``metrics.jsonl``) or a JSONL file, drawn by
+    :func:`plot_curves` to ``out_png`` (default: ``curves.png`` beside the metrics)."""
+    src = Path(run_or_jsonl)
+    if src.is_dir():
+        src = src / "metrics.jsonl"
+    return plot_curves(src, Path(out_png) if out_png is not None else src.with_name("curves.png"), keys, x, **kw)

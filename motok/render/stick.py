@@ -9,7 +9,8 @@ floor sliding underneath plus the trajectory line on the floor still show the tr
 The zoom is fixed per clip (fitted to every frame), so the figure never pumps in size.
 
 Azimuth 0 looks at the character from +Z (its front at frame 0, HumanML3D convention);
-negative azimuth moves the camera towards -X, the character's right.
+negative azimuth moves the camera towards -X, the character's right. The camera, the title
+layout and the input checks are in :mod:`motok.render.layout`; this module draws.
 """
 
 from __future__ import annotations
@@ -18,14 +19,17 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image, ImageDraw
 
 from motok.atomic import atomic_path
+from motok.errors import UserError
+from motok.render.layout import Camera, Layout, check_motion, joint_sides, load_font
 from motok.render.video import gif_stride, write_video
+
+__all__ = ["Camera", "joint_sides", "render_frames", "render_motion"]
 
 SUFFIXES = (".gif", ".mp4", ".png")
 SS = 2  # supersampling factor
-FOV = np.deg2rad(30.0)
 
 BACKGROUND = (246, 246, 243)
 FLOOR_LIGHT = (214, 218, 224)
@@ -45,182 +49,17 @@ HEAD_RADIUS = 0.085
 TILE = 0.5  # checker tile edge, metres
 
 
-def _font(px: int):
-    try:
-        return ImageFont.load_default(size=px)
-    except (TypeError, OSError):  # Pillow < 10.1 or no FreeType: fixed-size bitmap font
-        return ImageFont.load_default()
-
-
-def _wrap(text: str, font, width: float, max_lines: int = 3) -> list[str]:
-    lines: list[str] = []
-    for word in text.split():
-        if lines and font.getlength(lines[-1] + " " + word) <= width:
-            lines[-1] += " " + word
-        else:
-            lines.append(word)
-    if len(lines) > max_lines:
-        lines = lines[:max_lines]
-        while lines[-1] and font.getlength(lines[-1] + "...") > width:
-            lines[-1] = lines[-1][:-1]
-        lines[-1] += "..."
-    return lines
-
-
-class _Layout:
-    """Fonts, the wrapped title and the viewport left for the figure, in output pixels."""
-
-    def __init__(self, size: tuple[int, int], title: str | None):
-        w, h = int(size[0]), int(size[1])
-        if w < 32 or h < 32:
-            raise ValueError(f"size {size} is too small; need at least 32x32 pixels")
-        self.size = (w, h)
-        self.title_px = max(10, round(min(w, h) * 0.042))
-        self.small_px = max(9, round(min(w, h) * 0.03))
-        pad = round(self.title_px * 0.5)
-        # At most a third of the height goes to the title, however long the caption.
-        max_lines = max(1, min(3, int((h / 3 - 2 * pad) // round(self.title_px * 1.25))))
-        self.lines = _wrap(title, _font(self.title_px), w - 2 * pad, max_lines) if title else []
-        self.band = (len(self.lines) * round(self.title_px * 1.25) + 2 * pad) if self.lines else 0
-        self.pad = pad
-        # Leave room at the bottom for the frame counter so it never covers the feet.
-        self.viewport = (0.0, float(self.band), float(w), float(h - self.band - self.small_px * 1.6))
-
-
-class Camera:
-    """Per-clip camera: ``project(points, t)`` gives output-pixel coordinates and depth."""
-
-    def __init__(self, joints: np.ndarray, root: int, fps: float, layout: _Layout,
-                 elevation: float = 20.0, azimuth: float = -60.0):
-        el = np.deg2rad(np.clip(elevation, -89.0, 89.0))
-        az = np.deg2rad(azimuth)
-        self.eye_dir = np.array([np.sin(az) * np.cos(el), np.sin(el), np.cos(az) * np.cos(el)])
-        f = -self.eye_dir
-        r = np.cross(f, [0.0, 1.0, 0.0])
-        r /= np.linalg.norm(r)
-        self.basis = np.stack([r, np.cross(r, f), f])  # rows: right, up, forward
-        track = _smooth(joints[:, root, [0, 2]], int(round(fps * 0.5)) | 1)
-        ys = joints[..., 1]
-        mid = 0.5 * (ys.min() + ys.max())
-        self.targets = np.column_stack([track[:, 0], np.full(len(track), mid), track[:, 1]])
-        reach = max(float(np.linalg.norm(joints - self.targets[:, None], axis=-1).max()), 0.25)
-        self.dist = reach / np.sin(FOV / 2)
-        self.eyes = self.targets + self.dist * self.eye_dir
-        x0, y0, w, h = layout.viewport
-        self.focal = 0.5 * min(w, h) / np.tan(FOV / 2)
-        self.centre = np.array([x0 + w / 2, y0 + h / 2])
-        # Tighten the sphere bound to the projected extent over the whole clip, then recentre.
-        uv, _ = self.project(joints)
-        lo, hi = uv.reshape(-1, 2).min(0) - self.centre, uv.reshape(-1, 2).max(0) - self.centre
-        half = np.maximum((hi - lo) / 2, 1e-6)
-        scale = 0.84 * min(w / 2 / half[0], h / 2 / half[1])
-        self.focal *= scale
-        self.centre -= scale * (hi + lo) / 2
-        self.near = 0.15 * self.dist
-        self.floor_radius = max(2.0, 3.0 * reach)
-
-    def project(self, points: np.ndarray, t: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``points (T, ..., 3)`` for all frames, or ``(..., 3)`` seen from frame ``t``."""
-        points = np.asarray(points, dtype=np.float64)
-        if t is None:
-            eye = self.eyes.reshape((len(self.eyes),) + (1,) * (points.ndim - 2) + (3,))
-        else:
-            eye = self.eyes[t]
-        cam = (points - eye) @ self.basis.T
-        depth = cam[..., 2]
-        z = np.maximum(depth, 1e-6)
-        uv = np.stack([cam[..., 0] / z, -cam[..., 1] / z], -1) * self.focal + self.centre
-        return uv, depth
-
-    @classmethod
-    def fit(cls, joints, parents, *, fps: float = 20.0, title: str | None = None,
-            size=(480, 480), elevation: float = 20.0, azimuth: float = -60.0) -> "Camera":
-        """The camera :func:`render_frames` uses for the same arguments (tests use it)."""
-        joints, _, root = _check(joints, parents)
-        return cls(joints, root, fps, _Layout(size, title), elevation, azimuth)
-
-
-def _smooth(x: np.ndarray, win: int) -> np.ndarray:
-    win = min(win, len(x) - (1 - len(x) % 2))
-    if win <= 1:
-        return x.astype(np.float64)
-    xp = np.pad(x, ((win // 2, win // 2), (0, 0)), mode="edge")
-    c = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(xp, 0)])
-    return (c[win:] - c[:-win]) / win
-
-
-def _check(joints, parents) -> tuple[np.ndarray, np.ndarray]:
-    joints = np.asarray(joints, dtype=np.float64)
-    parents = np.asarray(parents).astype(np.int64)
-    if joints.ndim != 3 or joints.shape[-1] != 3 or len(joints) == 0:
-        raise ValueError(f"joints must be (T, J, 3) with T >= 1, got shape {joints.shape}")
-    if parents.shape != (joints.shape[1],):
-        raise ValueError(f"parents must be ({joints.shape[1]},) to match joints, got {parents.shape}")
-    if (parents >= len(parents)).any() or (parents < -1).any() or (parents == np.arange(len(parents))).any():
-        raise ValueError(f"parents must be -1 or another joint's index, got {parents.tolist()}")
-    if not np.isfinite(joints).all():
-        raise ValueError("joints contain NaN or infinite values")
-    _bfs(parents)  # raises on a cycle or a missing root
-    return joints, parents, int(np.flatnonzero(parents < 0)[0])
-
-
-def _bfs(parents: np.ndarray) -> list[int]:
-    children = [[] for _ in parents]
-    for j, p in enumerate(parents):
-        if p >= 0:
-            children[p].append(j)
-    order = [int(j) for j in np.flatnonzero(parents < 0)]
-    for j in order:
-        order.extend(children[j])
-    if len(order) != len(parents) or not order:
-        raise ValueError(f"parents must form a tree with a -1 root, got {parents.tolist()}")
-    return order
-
-
-def joint_sides(rest: np.ndarray, parents: Sequence[int]) -> np.ndarray:
-    """+1 left, -1 right, 0 centre per joint, from one pose ``rest (J, 3)`` facing +Z.
-
-    Mirror limbs are found from the tree, not from thresholds: at a centre joint, two
-    children whose subtrees have the same size are a left/right pair, and the one whose
-    subtree lies further towards +X is the left. This survives a leaning or twisted first
-    frame, where per-joint x thresholds would put the head on one side. Joints below a
-    sided joint inherit its side.
-    """
-    parents = np.asarray(parents, dtype=np.int64)
-    order = _bfs(parents)
-    members = [[j] for j in range(len(parents))]
-    for j in reversed(order):
-        if parents[j] >= 0:
-            members[parents[j]].extend(members[j])
-    side = np.zeros(len(parents), dtype=np.int64)
-    for u in order:
-        kids = [int(c) for c in np.flatnonzero(parents == u)]
-        if side[u] != 0:
-            side[kids] = side[u]
-            continue
-        by_size: dict[int, list[int]] = {}
-        for c in kids:
-            by_size.setdefault(len(members[c]), []).append(c)
-        for group in by_size.values():
-            if len(group) >= 2:
-                xs = [rest[members[c], 0].mean() for c in group]
-                lo, hi = group[int(np.argmin(xs))], group[int(np.argmax(xs))]
-                if max(xs) - min(xs) > 1e-6:
-                    side[hi], side[lo] = 1, -1
-    return side
-
-
 def _disc(draw: ImageDraw.ImageDraw, x: float, y: float, r: float, fill, outline=None, width: int = 0):
     draw.ellipse([x - r, y - r, x + r, y + r], fill=fill, outline=outline, width=width)
 
 
-def _header(lay: _Layout) -> Image.Image | None:
+def _header(lay: Layout) -> Image.Image | None:
     """The title band at supersampled resolution, drawn once per clip and pasted per frame."""
     if not lay.lines:
         return None
     img = Image.new("RGB", (lay.size[0] * SS, lay.band * SS), BACKGROUND)
     draw = ImageDraw.Draw(img)
-    font = _font(lay.title_px * SS)
+    font = load_font(lay.title_px * SS)
     y = lay.pad * SS
     for line in lay.lines:
         draw.text((img.width / 2, y), line, fill=TEXT, font=font, anchor="ma")
@@ -232,7 +71,7 @@ class _Scene:
     def __init__(self, joints, parents, *, fps=20.0, title=None, size=(480, 480), trajectory=True,
                  contacts=None, foot_joints=None, max_frames=None, elevation=20.0, azimuth=-60.0,
                  colors=None):
-        joints, self.parents, self.root = _check(joints, parents)
+        joints, self.parents, self.root = check_motion(joints, parents)
         if max_frames is not None and max_frames < 1:
             raise ValueError(f"max_frames must be >= 1, got {max_frames}")
         self.joints = joints[:max_frames]  # truncate rather than subsample: playback speed stays true
@@ -240,7 +79,7 @@ class _Scene:
         self.fps = float(fps)
         if not self.fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
-        self.layout = _Layout(size, title)
+        self.layout = Layout(size, title)
         self.cam = Camera(self.joints, self.root, self.fps, self.layout, elevation, azimuth)
         self.trajectory = trajectory
         side = joint_sides(self.joints[0], self.parents)
@@ -265,7 +104,7 @@ class _Scene:
             if ((self.feet < 0) | (self.feet >= J)).any():
                 raise ValueError(f"foot_joints out of range for {J} joints: {self.feet.tolist()}")
         self.floor_traj = self.joints[:, self.root] * [1.0, 0.0, 1.0] + [0.0, 0.002, 0.0]
-        self.font = _font(self.layout.small_px * SS)
+        self.font = load_font(self.layout.small_px * SS)
         self.header = _header(self.layout)
 
     def _floor(self, draw: ImageDraw.ImageDraw, t: int) -> None:
@@ -385,7 +224,7 @@ def _write_sheet(scene: _Scene, path: str, n: int, title: str | None) -> None:
     w = scene.layout.size[0]
     strip[:, w - 1 :: w][:, :-1] = (200, 200, 200)  # hairline between panels
     img = Image.fromarray(strip)
-    header = _header(_Layout((img.width, scene.layout.size[1]), title)) if title else None
+    header = _header(Layout((img.width, scene.layout.size[1]), title)) if title else None
     if header is not None:
         band = header.reduce(SS)
         sheet = Image.new("RGB", (img.width, band.height + img.height), BACKGROUND)
@@ -409,7 +248,7 @@ def render_motion(joints, parents, out_path, *, fps: float = 20.0, title: str | 
     out = Path(out_path)
     suffix = out.suffix.lower()
     if suffix not in SUFFIXES:
-        raise ValueError(f"cannot render to {out.name!r}: unknown suffix {suffix or '(none)'!r}; "
+        raise UserError(f"cannot render to {out.name!r}: unknown suffix {suffix or '(none)'!r}; "
                          f"accepted: {', '.join(SUFFIXES)}")
     if suffix == ".mp4":
         size = tuple(int(s) + int(s) % 2 for s in size)

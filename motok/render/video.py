@@ -11,6 +11,7 @@ import numpy as np
 from PIL import Image
 
 from motok.atomic import atomic_path
+from motok.errors import UserError
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 
@@ -52,7 +53,7 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in VIDEO_SUFFIXES:
-        raise ValueError(f"cannot write video to {path.name!r}: use one of {', '.join(VIDEO_SUFFIXES)}")
+        raise UserError(f"cannot write video to {path.name!r}: use one of {', '.join(VIDEO_SUFFIXES)}")
     with atomic_path(path) as tmp:
         (write_gif if suffix == ".gif" else write_mp4)(frames, tmp, fps)
     return path

@@ -1,35 +1,30 @@
-"""The MuJoCo humanoid, generated from a motion dataset's skeleton (``motok sim build-humanoid``).
+"""The MuJoCo humanoid motok builds from a motion dataset's skeleton: its types and its loading.
 
 One body per skeleton joint, named after it, so the body positions *are* the dataset's joint
 positions and no retargeting is needed. MuJoCo is Z-up and the datasets are Y-up facing +Z
 with the left on +X; the map ``(x, y, z)_data -> (z, x, y)_mujoco`` is a proper rotation that
 puts the character's forward on +X, its left on +Y and up on +Z (MuJoCo's own convention).
 
-The rest geometry comes from the data (``motok.sim.reference.rest_geometry``): the dataset's bone
-lengths, the mocap's own sibling geometry at the hips and chest, feet pitched to lie flat at rest.
+Joints (:func:`make_layout`): a free root; three hinges per ball joint, ordered so the middle
+hinge is the twist about the child bone (twist is small because the data has none, so the Euler
+decomposition stays far from gimbal lock); one hinge for knees and elbows (the parents of feet
+and hands). Leaves (head, hands, toes) are jointless bodies welded to their parents.
 
-Joints: a free root; three hinges per ball joint, ordered so the middle hinge is the twist
-about the child bone (twist is small because the data has none, so the Euler decomposition
-stays far from gimbal lock); one hinge for knees and elbows (the parents of feet and hands).
-Leaves (head, hands, toes) are jointless bodies welded to their parents. Ranges are the data's
-range of motion plus a margin; PD gains are proportional to the mass each joint moves.
+The builder is :func:`motok.sim.mjcf.build_humanoid` (rest geometry from the data, ranges from
+its range of motion plus a margin, PD gains proportional to the mass each joint moves);
+:func:`load_humanoid` reads back any file it wrote and checks what the rest of motok relies on.
 """
 
 from __future__ import annotations
 
 import json
-import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from motok.data.skeleton import Skeleton
-
-# MuJoCo picks its GL backend at import; every motok.sim module imports this one first, so a
-# headless machine renders through EGL unless the user chose (render.py falls back to sticks).
-if not os.environ.get("DISPLAY"):
-    os.environ.setdefault("MUJOCO_GL", "egl")
+from motok.errors import MotokError
 
 META_NAME = "motok_humanoid"
 META_VERSION = 1
@@ -37,7 +32,7 @@ AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0
 FORWARD, UP = AXES["x"], AXES["z"]
 
 
-class HumanoidError(ValueError):
+class HumanoidError(MotokError, ValueError):
     pass
 
 
@@ -57,9 +52,43 @@ class HumanoidConfig:
     derivative_time: float = 0.1  # kv = derivative_time * kp (PHC's kp/kd ratio of 10)
     armature: float = 0.02
     friction: float = 1.0
-    solver_iterations: int = 20
-    self_collision: bool = True
+    # Physics cost: benchmarks/physics.py steps states recorded from PD tracking of walk, run, turn
+    # and arm clips, falls included, under each option (table in docs/sim.md). Together the
+    # defaults below are 1.19-1.22x the raw mj_step rate of the previous build (every pair
+    # colliding, 20/10 iterations, automatic Jacobian, islands), same trajectories to 0.1 mm.
+    # Newton takes 2.8 iterations on average and at most 9 on those states: 10 never binds (6 binds
+    # on 2 % of the steps), so the cap bounds the worst step without changing the physics.
+    solver_iterations: int = 10
+    ls_iterations: int = 5
+    # "data": the floor plus only the part pairs that touch in the data (arms vs trunk, arms vs
+    # thighs, arm vs arm, leg vs leg; mjcf.contact_bits). What it drops (head, neck and clavicles vs
+    # anything, arms vs shins and feet, trunk vs legs) touches in 0.01 % of 190k reference frames
+    # (head vs upper arm) and in none of 63k recorded tracking steps: the contacts are those of
+    # "all", from 91 candidate geom pairs instead of 249 (what a GPU broadphase tests). Same cost on
+    # the CPU, where the arms-on-torso contact it keeps (0.7 per step) is what costs. "legs" (leg vs
+    # leg) and "none" (floor only) are another 1.10-1.17x but let the arms into the torso, which
+    # changes the arms by 3-4 cm within 10 steps of tracking: the reference itself puts the upper
+    # arms inside the torso capsules in 40 % of its frames (the capsules are wider than the actors).
+    self_collision: str = "data"  # "all" | "data" | "legs" | "none"; true/false mean all/none
+    # MuJoCo's "auto" means dense below nv = 60; for this nv = 43 tree the sparse Jacobian and
+    # Hessian make the Newton solve about 30 % cheaper (1.12-1.16x the whole step), same result.
+    jacobian: str = "sparse"  # "auto" | "dense" | "sparse"
+    islands: bool = False  # one humanoid is one island: finding it every step only costs (1.02-1.05x)
     max_frames: int = 20000  # frames sampled from the dataset for geometry and ranges
+
+    def __post_init__(self):
+        legacy = {"true": "all", "false": "none"}  # the option used to be a boolean
+        self.self_collision = legacy.get(str(self.self_collision).lower(), str(self.self_collision))
+        if self.self_collision not in SELF_COLLISION:
+            raise HumanoidError(f"self_collision must be one of {', '.join(SELF_COLLISION)}, "
+                                f"not {self.self_collision!r}")
+        if self.jacobian not in ("auto", "dense", "sparse"):
+            raise HumanoidError(f"jacobian must be auto, dense or sparse, not {self.jacobian!r}")
+        if self.solver_iterations < 1 or self.ls_iterations < 1:
+            raise HumanoidError("solver_iterations and ls_iterations must be at least 1")
+
+
+SELF_COLLISION = ("all", "data", "legs", "none")
 
 
 @dataclass
@@ -96,6 +125,11 @@ def _dominant(v: np.ndarray) -> str:
 
 
 def make_layout(skeleton: Skeleton, rest_mj: np.ndarray) -> Layout:
+    """The joint layout of ``skeleton`` with rest offsets ``rest_mj (J, 3)`` (MuJoCo coordinates).
+
+    Knees and elbows are found as the parents of the feet and hands (no names assumed); their
+    hinge axis is ``bone x flex direction`` snapped to a body axis, so positive angles flex them.
+    """
     J, parents = skeleton.num_joints, skeleton.parents
     children = [np.flatnonzero(parents == j) for j in range(J)]
     feet = {skeleton.feet_left[0], skeleton.feet_right[0]}
@@ -123,69 +157,6 @@ def make_layout(skeleton: Skeleton, rest_mj: np.ndarray) -> Layout:
     return Layout(list(skeleton.joints), parents, rest_mj, kinds, axes)
 
 
-def _moved_mass(model, layout: Layout, skeleton: Skeleton, body_ids: np.ndarray) -> dict[str, float]:
-    """Mass each hinge moves: its subtree, or for leg joints the larger side (a stance leg carries the body)."""
-    total = float(model.body_subtreemass[body_ids[0]])
-    legs = set(joint_chain(layout, skeleton.feet_left[0])) | set(joint_chain(layout, skeleton.feet_right[0]))
-    out = {}
-    for j, name in enumerate(layout.names):
-        sub = float(model.body_subtreemass[body_ids[j]])
-        out.update({f"{name}_{a[-1]}": max(sub, total - sub) if j in legs else sub for a in layout.axes[j]})
-    return out
-
-
-def build_humanoid(data_path, out, cfg: HumanoidConfig | None = None) -> dict:
-    """Write the MJCF for a ``motion-dataset`` artifact; returns a summary (mass, DoF, ranges...)."""
-    import mujoco
-
-    from motok.artifacts import command_line, hash_inputs
-    from motok.atomic import atomic_path
-    from motok.data.dataset import MotionFile
-    from motok.sim.mjcf import body_geoms, geom_volume, mjcf_text
-    from motok.sim.reference import rest_geometry, solve_pose
-
-    cfg = cfg or HumanoidConfig()
-    with MotionFile(data_path, "motion-dataset") as mf:
-        skeleton, offsets = mf.skeleton, np.asarray(mf.offsets, dtype=np.float64)
-        step = max(1, int(np.ceil(mf.frame_offsets[-1] / cfg.max_frames)))
-        clips = [np.asarray(mf.frames("joints", i), dtype=np.float64)[::step] for i in range(len(mf))]
-    frames = np.concatenate(clips)
-    rest_d, foot = rest_geometry(frames, skeleton, offsets)
-    layout = make_layout(skeleton, to_mj(rest_d))
-    angles = np.concatenate([solve_pose(to_mj(c), layout)[2] for c in clips if len(c) > 0])
-    margin = np.deg2rad(cfg.range_margin_deg)
-    # Ranges always contain 0 so the rest pose (qpos0, what a viewer opens) is a legal configuration.
-    lo = np.clip(np.minimum(angles.min(0) - margin, 0.0), -np.pi + 1e-3, 0.0)
-    hi = np.clip(np.maximum(angles.max(0) + margin, 0.0), 0.0, np.pi - 1e-3)
-    ranges = {n: (lo[i], hi[i]) for i, n in enumerate(layout.hinge_names)}
-    height = float(np.quantile(frames[:, skeleton.head, 1], 0.5)) + 0.18
-    scale = height / 1.70
-    geoms = body_geoms(layout, skeleton, foot, scale)
-    volume = sum(geom_volume(g) for gs in geoms.values() for g in gs)
-    density = cfg.total_mass / volume
-    # qpos0 stands the rest pose on the floor: root height = leg drop to the ankle + stance ankle height.
-    drop = -sum(layout.rest[k][2] for k in joint_chain(layout, skeleton.feet_left[0]))
-    meta = dict(version=META_VERSION, skeleton=skeleton.to_dict(), control_hz=cfg.control_hz, config=asdict(cfg),
-                foot=foot, root_height=float(drop + foot["ankle_height"] + 1e-3),
-                source=str(data_path), inputs=hash_inputs([data_path]), command=command_line())
-    xml = mjcf_text(layout, geoms, cfg, density, ranges, {n: 1.0 for n in layout.hinge_names}, [], meta)
-    model = mujoco.MjModel.from_xml_string(xml)
-    body_ids = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in layout.names])
-    gains = {n: max(cfg.stiffness_per_kg * m, cfg.min_stiffness)
-             for n, m in _moved_mass(model, layout, skeleton, body_ids).items()}
-    excludes = _rest_contacts(model, layout) if cfg.self_collision else []
-    xml = mjcf_text(layout, geoms, cfg, density, ranges, gains, excludes, meta)
-    out = Path(out)
-    with atomic_path(out) as tmp:
-        tmp.write_text(xml)
-    hum = load_humanoid(out)
-    m = hum.model
-    return {"output": str(out), "bodies": m.nbody - 1, "hinges": m.nu, "nq": m.nq, "nv": m.nv,
-            "mass_kg": round(float(m.body_subtreemass[1]), 2), "height_m": round(height, 3),
-            "timestep_s": m.opt.timestep, "substeps": hum.substeps, "control_hz": cfg.control_hz,
-            "excluded_pairs": len(excludes), "frames_used": len(frames)}
-
-
 def joint_chain(layout: Layout, j: int) -> list[int]:
     """Joint ``j`` and its ancestors up to, not including, the root."""
     out = []
@@ -193,21 +164,6 @@ def joint_chain(layout: Layout, j: int) -> list[int]:
         out.append(j)
         j = layout.parents[j]
     return out
-
-
-def _rest_contacts(model, layout: Layout) -> list[tuple[str, str]]:
-    """Body pairs that touch at qpos0: structural overlaps (pelvis vs spine children, ...), excluded."""
-    import mujoco
-
-    d = mujoco.MjData(model)
-    mujoco.mj_forward(model, d)
-    pairs = set()
-    for c in d.contact[: d.ncon]:
-        b1, b2 = model.geom_bodyid[c.geom[0]], model.geom_bodyid[c.geom[1]]
-        if b1 and b2:
-            pairs.add(tuple(sorted((mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b1),
-                                    mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b2)))))
-    return sorted(pairs)
 
 
 # ----------------------------------------------------------------------------- loading
@@ -238,7 +194,7 @@ class Humanoid:
 
 
 def load_humanoid(path) -> Humanoid:
-    """Load and check a humanoid MJCF written by :func:`build_humanoid`, with one-line errors."""
+    """Load and check a humanoid MJCF written by :func:`motok.sim.mjcf.build_humanoid`, with one-line errors."""
     import mujoco
 
     path = Path(path)

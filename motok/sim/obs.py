@@ -1,4 +1,4 @@
-"""Body kinematics, observations, goals, rewards and termination, vectorized over environments.
+"""Body states, forward kinematics and the proprioceptive observation, vectorized over environments.
 
 Everything here is plain numpy on ``(N, ...)`` arrays, with no MuJoCo calls, so the same code
 serves one environment or thousands, and a GPU port is a change of array library.
@@ -10,37 +10,15 @@ and whichever way it faces (tests/test_sim.py checks it).
 * Observation s, hybrid-latent paper Eq. 7: root height, root orientation (6D, heading
   frame), root linear and angular velocity (heading frame), hinge positions and velocities,
   end-effector positions relative to the root (heading frame).
-* Goal s~, Eq. 9: for each of the next K reference frames and every body, the position,
-  rotation (6D), linear-velocity and angular-velocity differences reference - simulation in the
-  heading frame. The rotation difference is conjugated into the heading frame as PHC does
-  (``H (R_ref R_sim^T) H^T`` with ``H`` the inverse heading); the authors' code left-multiplies only, which is not
-  heading-invariant, and does not rotate the angular velocity difference: we rotate both.
-* Imitation reward, Eq. 10: the PHC terms exp(-k e) for body position, rotation, velocity and
-  angular velocity errors, with PHC's scales (100, 10, 0.1, 0.1) and weights (0.5, 0.3, 0.1,
-  0.1); errors are means over bodies of squared norms (PHC; the paper does not give them).
+
+Goals (Eq. 9 and the tasks'), rewards and terminations are control terms: ``motok.control.mdp``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from motok.rotations import matrix_to_quat, quat_to_matrix
-
-REWARD_TERMS = ("pos", "rot", "vel", "ang_vel")
-
-
-@dataclass
-class RewardConfig:
-    scale_pos: float = 100.0
-    scale_rot: float = 10.0
-    scale_vel: float = 0.1
-    scale_ang_vel: float = 0.1
-    w_pos: float = 0.5
-    w_rot: float = 0.3
-    w_vel: float = 0.1
-    w_ang_vel: float = 0.1
 
 
 class Bodies:
@@ -176,44 +154,3 @@ def observation(qpos: np.ndarray, qvel: np.ndarray, bodies: Bodies, end_effector
     vecs = np.concatenate([bodies.vel[:, :1], bodies.angvel[:, :1], bodies.pos[:, end_effectors] - bodies.pos[:, :1]], 1)
     vecs = unyaw(c[:, None], s[:, None], vecs).reshape(N, -1)
     return np.concatenate([bodies.pos[:, 0, 2:3], six, vecs[:, :6], qpos[:, 7:], qvel[:, 6:], vecs[:, 6:]], -1)
-
-
-def goal(sim: Bodies, ref: Bodies) -> np.ndarray:
-    """Eq. 9, ``(N, K * J * 15)`` from sim bodies ``(N, J, .)`` and reference bodies ``(N, K, J, .)``."""
-    N, K, J = ref.pos.shape[:3]
-    c, s = heading(sim.rot[:, 0])
-    c, s = c[:, None, None, None], s[:, None, None, None]
-    qs, qr = sim.quat[:, None], ref.quat
-    # q_d = q_ref conj(q_sim), the rotation taking sim to ref. Conjugating it by the heading
-    # (H R_d H^T, PHC's form) only turns its vector part by minus the heading, done with the rest.
-    w = (qr * qs).sum(-1)
-    v = qs[..., :1] * qr[..., 1:] - qr[..., :1] * qs[..., 1:] - cross3(qr[..., 1:], qs[..., 1:])
-    d = unyaw(c, s, np.stack([ref.pos - sim.pos[:, None], v, ref.vel - sim.vel[:, None],
-                              ref.angvel - sim.angvel[:, None]], -2))  # (N, K, J, 4, 3)
-    x, y, z = d[..., 1, 0], d[..., 1, 1], d[..., 1, 2]
-    six = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y),
-                    2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], -1)  # R_d's first two columns
-    return np.concatenate([d[..., 0, :], six, d[..., 2, :], d[..., 3, :]], -1).reshape(N, K * J * 15)
-
-
-def reward_terms(sim: Bodies, ref: Bodies, cfg: RewardConfig) -> dict[str, np.ndarray]:
-    """Eq. 10: per-term rewards in [0, 1] and their weighted ``total``, each ``(N,)``."""
-    e_pos = ((sim.pos - ref.pos) ** 2).sum(-1).mean(-1)
-    half = np.arccos(np.clip(np.abs((ref.quat * sim.quat).sum(-1)), 0.0, 1.0))  # |w| of q_ref conj(q_sim)
-    e_rot = ((2.0 * half) ** 2).mean(-1)
-    e_vel = ((sim.vel - ref.vel) ** 2).sum(-1).mean(-1)
-    e_ang = ((sim.angvel - ref.angvel) ** 2).sum(-1).mean(-1)
-    r = {"pos": np.exp(-cfg.scale_pos * e_pos), "rot": np.exp(-cfg.scale_rot * e_rot),
-         "vel": np.exp(-cfg.scale_vel * e_vel), "ang_vel": np.exp(-cfg.scale_ang_vel * e_ang)}
-    r["total"] = cfg.w_pos * r["pos"] + cfg.w_rot * r["rot"] + cfg.w_vel * r["vel"] + cfg.w_ang_vel * r["ang_vel"]
-    return r
-
-
-def body_errors(sim: Bodies, ref: Bodies) -> np.ndarray:
-    """``(N, J)`` distance of each body to its reference (m)."""
-    return np.sqrt(((sim.pos - ref.pos) ** 2).sum(-1))
-
-
-def max_body_error(sim: Bodies, ref: Bodies) -> np.ndarray:
-    """``(N,)`` largest body distance to the reference."""
-    return body_errors(sim, ref).max(-1)

@@ -1,9 +1,13 @@
 """Offscreen video of humanoid trajectories: MuJoCo's renderer (EGL or OSMesa on headless
 machines), else the stick figure of ``motok.render.stick`` drawn from the body positions.
 
-MuJoCo chooses its GL backend when it is first imported, so ``motok.sim.humanoid`` (which every
-sim module imports before MuJoCo) sets ``MUJOCO_GL=egl`` when there is no display and the user
-did not choose. A ``ghost`` trajectory (the reference) can be drawn as a translucent second body.
+MuJoCo chooses its GL backend once, from ``MUJOCO_GL``, when ``mujoco`` is first imported; its
+default (GLFW) needs a display. The ``motok`` command sets ``MUJOCO_GL=egl`` at start when there
+is no display and the user did not choose (:func:`motok.cli.common.choose_mujoco_gl`); importing
+motok never changes the environment. Library users on a headless machine set it themselves
+before anything imports mujoco (``os.environ.setdefault("MUJOCO_GL", "egl")``, or ``osmesa``);
+without a working backend :func:`render_trajectory` falls back to the stick figure. A ``ghost``
+trajectory (the reference) can be drawn as a translucent second body.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from motok.errors import UserError
 from motok.render.video import gif_stride, write_video
 from motok.sim.humanoid import Humanoid
 
@@ -80,7 +85,7 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
     (``mujoco`` or ``stick``). ``backend="stick"`` forces the fallback."""
     out = Path(out)
     if out.suffix.lower() not in SUFFIXES:
-        raise ValueError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
+        raise UserError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
     out.parent.mkdir(parents=True, exist_ok=True)
     size = tuple(int(s) + int(s) % 2 for s in size)
     if backend in ("auto", "mujoco"):

@@ -25,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from motok.errors import MotokError
 
-class TextEncoderError(ValueError):
+
+class TextEncoderError(MotokError, ValueError):
     pass
 
 

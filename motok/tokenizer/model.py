@@ -1,5 +1,5 @@
 """The T2M-GPT motion VQ-VAE (Zhang et al. 2023, Sec. 3.1 and appendix F): a 1D convolutional
-encoder that downsamples time by ``2**down_t``, a quantizer (:mod:`motok.tokenizer.quantize`),
+encoder that downsamples time by ``2**down_t``, a quantizer (:mod:`motok.quantize`),
 and a mirrored decoder with nearest-neighbour upsampling; and its training loss (Eq. 2-3).
 
 Shapes follow the motion artifacts: features are ``(B, T, D)`` with ``D = 12J - 1``; the
@@ -17,7 +17,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from motok.features.humanml3d import feature_slices
-from motok.tokenizer.quantize import QuantizerConfig, build_quantizer
+from motok.quantize.base import QuantizerConfig
+from motok.quantize.registry import build_quantizer
 
 ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU}
 

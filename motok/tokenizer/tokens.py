@@ -203,14 +203,11 @@ def reconstruction_errors(pred: np.ndarray, gt: np.ndarray, num_joints: int) -> 
     ``mpjpe_global``: with the integrated root trajectory (drift included); ``accel``: norm of
     the difference of second differences of global joints (mm/frame^2, jitter).
     """
-    p = recover_from_ric(np.asarray(pred, np.float64), num_joints) * 1000.0
-    g = recover_from_ric(np.asarray(gt, np.float64), num_joints) * 1000.0
-    rel = np.linalg.norm((p - p[:, :1]) - (g - g[:, :1]), axis=-1).mean(-1)
-    glob = np.linalg.norm(p - g, axis=-1).mean(-1)
-    acc_p = p[2:] - 2 * p[1:-1] + p[:-2]
-    acc_g = g[2:] - 2 * g[1:-1] + g[:-2]
-    accel = np.linalg.norm(acc_p - acc_g, axis=-1).mean(-1)
-    return {"mpjpe": rel, "mpjpe_global": glob, "accel": accel}
+    from motok.eval.metrics import acceleration_error, mpjpe  # the shared implementation; numpy only, no cycle
+
+    p = recover_from_ric(np.asarray(pred, np.float64), num_joints)
+    g = recover_from_ric(np.asarray(gt, np.float64), num_joints)
+    return {"mpjpe": mpjpe(p, g), "mpjpe_global": mpjpe(p, g, root_relative=False), "accel": acceleration_error(p, g)}
 
 
 def codebook_stats(counts: np.ndarray) -> list[dict]:
@@ -237,7 +234,7 @@ def evaluate(run: str | Path, data: str | Path, split: str = "test", num_codeboo
         _check_data(mf, meta)
         idx_clips = mf.split_indices(split)
         if not idx_clips:
-            raise KeyError(f"{data}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
+            raise TokenizerError(f"{data}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
         J = mf.skeleton.num_joints
         with _progress.make_progress("clips") as bar:
             task = bar.add_task(f"eval {split}", total=len(idx_clips))
@@ -262,7 +259,7 @@ def evaluate(run: str | Path, data: str | Path, split: str = "test", num_codeboo
                 accel_frames += T - 2
                 clips += 1
     if not clips:
-        raise KeyError(f"{data}: no clip of split {split!r} is long enough to evaluate")
+        raise TokenizerError(f"{data}: no clip of split {split!r} is long enough to evaluate")
     cb = codebook_stats(counts)
     return {
         "tokenizer": str(run), "iteration": meta["extra"].get("iteration"), "data": str(data), "split": split,

@@ -29,9 +29,11 @@ from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
-from motok.optim import OptimConfig, lr_factor  # noqa: F401 (lr_factor re-exported)
-from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss  # noqa: F401 (re-exported)
-from motok.tokenizer.quantize import QuantizerConfig
+from motok.errors import MotokError
+from motok.optim import OptimConfig, lr_factor
+from motok.quantize.base import QuantizerConfig
+from motok.quantize.registry import build_quantizer
+from motok.tokenizer.model import ACTIVATIONS, VQVAE, LossConfig, ModelConfig, vqvae_loss
 
 KIND = "tokenizer"
 register_kind(KIND, (1,))
@@ -54,7 +56,7 @@ class TrainConfig:
     threads: int = 0  # torch intra-op threads; 0 = torch's default
 
 
-class TokenizerError(ValueError):
+class TokenizerError(MotokError, ValueError):
     pass
 
 
@@ -142,8 +144,6 @@ def _ddp_args() -> set[str]:
 
 def check_config(cfg: TrainConfig) -> TrainConfig:
     """Fail before any work on values the dataclass types cannot rule out."""
-    from motok.tokenizer.model import ACTIVATIONS
-    from motok.tokenizer.quantize import build_quantizer
     try:
         build_quantizer(cfg.quantizer)
     except ValueError as e:
@@ -223,7 +223,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
     if cfg.batch_size % d.world:
         raise TokenizerError(f"batch_size {cfg.batch_size} does not split over {d.world} ranks")
     if not data_path.is_file():
-        raise FileNotFoundError(f"{data_path}: no such file")
+        raise TokenizerError(f"{data_path}: no such file")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     device = pick_device(cfg.device, d, TokenizerError)

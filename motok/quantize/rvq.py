@@ -1,7 +1,8 @@
-"""Residual vector quantization (seed paper Eq. 5; MoMask Sec. 3.1).
+"""Residual vector quantization (seed paper Eq. 5; MoMask Sec. 3.1), kind ``rvq``.
 
 r_0 = z, q_i = Q_i(r_{i-1}), r_i = r_{i-1} - q_i, z_q = sum_{i<=M} q_i, with each Q_i a
-:class:`~motok.tokenizer.quantize.VectorQuantizer` of kind ``cfg.rvq_base``.
+:class:`~motok.quantize.vq.VectorQuantizer` of kind ``cfg.rvq_base``. Conventions and shapes:
+:mod:`motok.quantize.base`.
 """
 
 from __future__ import annotations
@@ -9,15 +10,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from motok.tokenizer.quantize import (
-    QuantizeOutput,
-    Quantizer,
-    QuantizerConfig,
-    VectorQuantizer,
-    _fp32,
-    _rows,
-    _StraightThrough,
-)
+from motok.quantize.base import (QuantizeOutput, Quantizer, QuantizerConfig, batch_shape, channels_first,
+                                 check_indices, fp32, straight_through, to_rows)
+from motok.quantize.vq import VectorQuantizer
 
 
 class ResidualVQ(Quantizer):
@@ -35,6 +30,9 @@ class ResidualVQ(Quantizer):
       vector-quantize-pytorch do, scales it by M.)
     - Inference: any M <= N; ``encode`` pads the unused codebooks with -1 and ``decode`` sums
       the first M codebooks' vectors, skipping -1.
+
+    Shapes: ``z`` (B, D) -> ``z_q`` (B, D), indices (B, N); ``z`` (B, D, T) -> ``z_q``
+    (B, D, T), indices (B, T, N). ``decode`` also takes fewer than N index columns.
     """
 
     def __init__(self, cfg: QuantizerConfig):
@@ -59,7 +57,7 @@ class ResidualVQ(Quantizer):
         counts: list[Tensor | None] = [None] * self.num_codebooks
         dead = [0] * self.num_codebooks
         for i, layer in enumerate(self.layers[:m]):
-            q, idx[:, i], losses, counts[i], dead[i] = layer._quantize(r, update)
+            q, idx[:, i], losses, counts[i], dead[i] = layer.quantize_rows(r, update)
             r = r - q
             q_sum = q_sum + q
             commit.append(losses["commit"])
@@ -69,23 +67,24 @@ class ResidualVQ(Quantizer):
 
     def forward(self, z: Tensor, num_codebooks: int | None = None) -> QuantizeOutput:
         self._sync_once()
-        with _fp32(z):
-            x = _rows(z, self.dim)
+        with fp32(z):
+            x = to_rows(z, self.dim)
             m = self._active(num_codebooks, self._next_generator() if self.training else None)
             q, idx, losses, counts, dead = self._residual(x, m, self.training)
-            zq = _StraightThrough.apply(x, q)
+            zq = straight_through(x, q)
         return self._output(z, zq, idx, losses, counts, dead, m)
 
     @torch.no_grad()
     def encode(self, z: Tensor, num_codebooks: int | None = None) -> Tensor:
         m = self._check_m(num_codebooks)
-        with _fp32(z):
-            idx = self._residual(_rows(z, self.dim), m, update=False)[1]
-        return idx.reshape(z.shape[0], z.shape[2], self.num_codebooks)
+        with fp32(z):
+            idx = self._residual(to_rows(z, self.dim), m, update=False)[1]
+        return idx.reshape(*batch_shape(z), self.num_codebooks)
 
     @torch.no_grad()
     def decode(self, indices: Tensor, num_codebooks: int | None = None) -> Tensor:
-        """indices (B, T, N') with N' <= N columns (coarse token sets are accepted)."""
+        """indices (B, N') or (B, T, N') with N' <= N columns (coarse token sets are accepted)."""
+        check_indices(indices)
         m = self._check_m(num_codebooks if num_codebooks is not None else min(indices.shape[-1], self.num_codebooks))
         if m > indices.shape[-1]:
             raise ValueError(f"asked for {m} codebooks but indices have {indices.shape[-1]} columns")
@@ -93,7 +92,7 @@ class ResidualVQ(Quantizer):
         out = torch.zeros(*indices.shape[:-1], self.dim, device=indices.device)
         for i, layer in enumerate(self.layers[:m]):
             out = out + layer.lookup(indices[..., i])
-        return out.transpose(1, 2).contiguous()
+        return channels_first(out)
 
     def codebooks(self) -> Tensor:
         return torch.stack([layer.embed.detach() for layer in self.layers])

@@ -1,5 +1,5 @@
-"""Finite scalar quantization (Mentzer et al. 2023), the ``fsq`` kind of
-:func:`motok.tokenizer.quantize.build_quantizer`: a codebook-free alternative to the VQ kinds."""
+"""Finite scalar quantization (Mentzer et al. 2023), kind ``fsq``: a codebook-free alternative
+to the VQ kinds. Conventions and shapes: :mod:`motok.quantize.base`."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 import torch
 from torch import Tensor, nn
 
-from motok.tokenizer.quantize import (QuantizeOutput, Quantizer, QuantizerConfig, _all_reduce_sum, _fp32, _rows,
-                                      _StraightThrough)
+from motok.quantize.base import (QuantizeOutput, Quantizer, QuantizerConfig, all_reduce_sum, batch_shape,
+                                 channels_first, check_indices, fp32, straight_through, to_rows)
 
 
 class FSQuantizer(Quantizer):
@@ -21,7 +21,11 @@ class FSQuantizer(Quantizer):
     Channel i takes L_i values evenly spaced in [-1, 1]. For even L_i the grid is the symmetric
     half-integer one (round(b - 1/2) + 1/2) rather than the reference code's shifted grid, which
     keeps z = 0 at the centre and makes L_i = 2 valid. Unlike the VQ kinds, the gradient to z
-    is not the identity: it passes through tanh and the projections, as in the paper.
+    is not the identity: the straight-through estimator sits on the rounding only, so the
+    gradient passes through tanh and the projections, as in the paper.
+
+    Shapes: ``z`` (B, D) -> ``z_q`` (B, D), indices (B, 1); ``z`` (B, D, T) -> ``z_q``
+    (B, D, T), indices (B, T, 1); an index is the mixed-radix number of the grid point.
     """
 
     def __init__(self, cfg: QuantizerConfig):
@@ -40,7 +44,7 @@ class FSQuantizer(Quantizer):
     def _grid_codes(self, h: Tensor) -> Tensor:
         bounded = torch.tanh(h) * self.half_width
         grid = torch.round(bounded.detach() - self.shift) + self.shift
-        return _StraightThrough.apply(bounded, grid) / self.half_width
+        return straight_through(bounded, grid) / self.half_width
 
     def _to_indices(self, codes: Tensor) -> Tensor:
         return ((codes * self.half_width + self.half_width).round().long() * self.basis).sum(-1)
@@ -51,28 +55,29 @@ class FSQuantizer(Quantizer):
     def forward(self, z: Tensor, num_codebooks: int | None = None) -> QuantizeOutput:
         self._check_m(num_codebooks)
         self._sync_once()
-        with _fp32(z):
-            codes = self._grid_codes(self.project_in(_rows(z, self.dim)))
+        with fp32(z):
+            codes = self._grid_codes(self.project_in(to_rows(z, self.dim)))
             idx = self._to_indices(codes.detach())
             out = self.project_out(codes)
             counts = torch.bincount(idx, minlength=self.codebook_size).float()
             if self.training:
-                counts = _all_reduce_sum(counts)
+                counts = all_reduce_sum(counts)
             zero = out.new_zeros(())
         return self._output(z, out, idx[:, None], {"commit": zero, "codebook": zero.clone()}, [counts], [0], 1)
 
     @torch.no_grad()
     def encode(self, z: Tensor, num_codebooks: int | None = None) -> Tensor:
         self._check_m(num_codebooks)
-        with _fp32(z):
-            codes = self._grid_codes(self.project_in(_rows(z, self.dim)))
-            return self._to_indices(codes).reshape(z.shape[0], z.shape[2], 1)
+        with fp32(z):
+            codes = self._grid_codes(self.project_in(to_rows(z, self.dim)))
+            return self._to_indices(codes).reshape(*batch_shape(z), 1)
 
     @torch.no_grad()
     def decode(self, indices: Tensor, num_codebooks: int | None = None) -> Tensor:
         self._check_m(num_codebooks)
-        with _fp32(indices):
-            return self.project_out(self._to_codes(indices[..., 0])).transpose(1, 2).contiguous()
+        check_indices(indices)
+        with fp32(indices):
+            return channels_first(self.project_out(self._to_codes(indices[..., 0])))
 
     @torch.no_grad()
     def codebooks(self) -> Tensor:

@@ -1,0 +1,115 @@
+"""What every ``motok`` subcommand shares: calling into a stage, failing, printing results, and
+the option declarations that mean the same thing everywhere.
+
+Stage CLIs (``motok/cli/<stage>.py``) import from here and ``motok/cli/main.py`` imports the
+stage CLIs, so nothing here may import ``motok.cli.main``. Importing this module stays cheap
+(typer only): ``motok --help`` must not pay for torch or MuJoCo.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import typer
+
+from motok import progress
+from motok.errors import MotokError
+
+__all__ = ["DataRoot", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "existing", "fail", "input_option",
+           "print_json", "recipe_option", "report", "run"]
+
+
+# --------------------------------------------------------------------------- errors
+
+def fail(msg: str, code: int = 2):
+    """Print ``error: msg`` on stderr and exit with ``code`` (2: the user has something to fix)."""
+    from rich.markup import escape
+    progress.console.print(f"[bold red]error:[/] {escape(msg)}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def run(fn: Callable, *args, **kwargs):
+    """Call into a stage. An error motok raised on purpose (:class:`motok.errors.MotokError`)
+    becomes one line and exit code 2; any other exception is a bug and keeps its traceback."""
+    try:
+        return fn(*args, **kwargs)
+    except MotokError as e:
+        fail(str(e))
+
+
+def existing(ctx: typer.Context, param, value):
+    """Typer callback for input paths: a path that does not exist fails at parse time, in the
+    same one-line form as every other user error (typer's own ``exists=True`` draws a panel)."""
+    if ctx.resilient_parsing or value is None:
+        return value
+    opts = [o for o in getattr(param, "opts", []) if o.startswith("--")]
+    label = opts[0] if opts else (param.name or "").upper()
+    for v in value if isinstance(value, (list, tuple)) else [value]:
+        if not Path(v).exists():
+            fail(f"{v}: no such file or directory ({label})")
+    return value
+
+
+# --------------------------------------------------------------------------- output
+
+def print_json(obj) -> None:
+    typer.echo(json.dumps(obj, indent=2, default=str))
+
+
+def cell(v) -> str:
+    """One table cell: floats to 4 significant digits, mappings as ``k=v``, sequences comma-joined."""
+    if isinstance(v, bool):
+        return str(v)
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, Mapping):
+        return "  ".join(f"{k}={cell(x)}" for k, x in v.items())
+    if isinstance(v, (list, tuple)):
+        return ", ".join(cell(x) for x in v)
+    return str(v)
+
+
+def report(summary: dict, as_json: bool, title: str, *, hide=(),
+           cells: Mapping[str, Callable[[Any], str]] | None = None) -> None:
+    """A stage's summary: the whole dict as JSON with ``--json``, else a two-column table on
+    stderr without the keys in ``hide``; ``cells`` formats chosen keys its own way."""
+    if as_json:
+        print_json(summary)
+        return
+    from rich.markup import escape
+    from rich.table import Table
+    t = Table(title=title, show_header=False)
+    for k, v in summary.items():
+        if k not in hide:
+            t.add_row(escape(str(k)), escape((cells or {}).get(k, cell)(v)))
+    progress.console.print(t)
+
+
+# --------------------------------------------------------------------------- environment
+
+def choose_mujoco_gl() -> None:
+    """MuJoCo reads ``MUJOCO_GL`` once, when ``mujoco`` is first imported. Without a display its
+    default (GLFW) has no context to open, so a headless ``motok`` renders through EGL unless the
+    user chose a backend; ``motok.sim.render`` falls back to the stick figure if none works."""
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+# --------------------------------------------------------------------------- options
+
+def recipe_option(folder: str = "recipes/"):
+    return typer.Option(None, "--recipe", help=f"YAML recipe ({folder}).")
+
+
+def input_option(*names: str, help: str):
+    """A required input file option (``--data``, ``--tokens``) checked by :func:`existing`."""
+    return typer.Option(..., *names, help=help, callback=existing)
+
+
+DataRoot = typer.Option(None, "--data-root", help="Data folder (else $MOTOK_DATA, else ../shared/datasets).")
+Sets = typer.Option([], "--set", help="Override a config key: --set key=value (repeatable).")
+Resume = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped.")
+JsonOut = typer.Option(False, "--json", help="Print the result as JSON.")

@@ -1,0 +1,47 @@
+"""Action maps: a policy's output -> PD targets ``(N, nu)`` for ``HumanoidEnv.step``.
+
+* ``current``: ``q_hat = q + scale a``, residual on the current hinge angles (the hybrid-latent
+  paper's code, and the only choice for a policy with no reference motion);
+* ``reference``: ``q_hat = q_ref' + (kv / kp) qd_ref' + scale a``, residual on the next reference
+  frame with a velocity lead, so a zero action is PD tracking of the reference's angles *and*
+  velocities (the usual residual form for imitation experts; exploration noise does not
+  accumulate). The reference comes from the task (:meth:`next_reference`).
+
+A frozen latent decoder (the priors' low-level policy) is one more map of the same shape.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from motok.errors import UserError
+
+BASES = ("current", "reference")
+
+
+@dataclass
+class ActionConfig:
+    base: str = "current"
+    scale: float = 1.0
+
+    def __post_init__(self):
+        if self.base not in BASES:
+            raise UserError(f"action base must be 'current' or 'reference', not {self.base!r}")
+
+
+def residual_targets(a: np.ndarray, base: np.ndarray, scale: float) -> np.ndarray:
+    return base + scale * np.asarray(a, dtype=np.float64)
+
+
+def reference_base(env, ref_qpos: np.ndarray, ref_qvel: np.ndarray) -> np.ndarray:
+    """``(N, nu)`` reference hinge angles plus the velocity lead ``(kv / kp) qd_ref``."""
+    return ref_qpos[:, env.hinge_adr] + env.velocity_lead * ref_qvel[:, env.hinge_dof]
+
+
+def pd_targets(cfg: ActionConfig, a: np.ndarray, env, task) -> np.ndarray:
+    """The map named by ``cfg.base``; ``task.next_reference()`` gives ``(qpos, qvel)`` for ``reference``."""
+    if cfg.base == "current":
+        return residual_targets(a, env.qpos[:, env.hinge_adr], cfg.scale)
+    return residual_targets(a, reference_base(env, *task.next_reference()), cfg.scale)

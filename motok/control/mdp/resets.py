@@ -1,0 +1,43 @@
+"""Reset terms: where a new episode starts.
+
+Reference state initialisation (Peng et al. 2018, used by the hybrid-latent paper's expert):
+start from a state of the reference motion, at a random clip and frame or at given ones.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from motok.errors import UserError
+from motok.sim.reference import ReferenceLibrary
+
+RESET_CLEARANCE = 0.002  # m: a reference pose whose geometry dips below the floor is lifted to this height
+
+
+def reference_state(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(qpos, qvel)`` of the reference at ``clips``/``frames``, lifted clear of the floor."""
+    g = lib.starts[clips] + frames
+    qpos, qvel = lib.qpos[g].copy(), lib.qvel[g].copy()
+    qpos[:, 2] += np.maximum(RESET_CLEARANCE - lib.lowest[g], 0.0)
+    return qpos, qvel
+
+
+def check_start_frames(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndarray, ahead: int) -> None:
+    """Given start frames must leave at least one step with ``ahead`` reference frames after it."""
+    bad = (frames < 0) | (frames + ahead + 2 > lib.lengths[clips])
+    if bad.any():
+        raise UserError(f"start frames {frames[bad].tolist()} leave no step with {ahead} reference frames ahead "
+                         f"(clip lengths {lib.lengths[clips[bad]].tolist()} at {lib.fps:g} Hz)")
+
+
+def sample_starts(lib: ReferenceLibrary, n: int, rng: np.random.Generator, ahead: int,
+                  clip_p: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Random start clips and frames leaving ``ahead`` frames after them: clips in proportion to
+    their usable length (``clip_p=None``) or to given probabilities (difficulty sampling,
+    ``motok.control.sampling``); frames uniform within the clip."""
+    if clip_p is None:
+        return lib.sample(n, rng, horizon=ahead)
+    usable = np.maximum(lib.lengths - ahead, 0)
+    clips = rng.choice(len(lib), size=n, p=clip_p)
+    frames = np.floor(rng.random(n) * usable[clips]).astype(np.int64)
+    return clips, frames

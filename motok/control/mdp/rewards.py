@@ -1,0 +1,40 @@
+"""Reward terms, each ``(N,)`` per environment.
+
+* :func:`imitation_reward`, hybrid-latent paper Eq. 10: a **product**
+  ``r_im = r_root r_q r_alpha r_ee`` of ``exp(-k e)`` terms with the paper's exponents
+  ``k = (10, 2, 0.5, 40)``, from the errors of :func:`imitation_errors`: ``e_root`` the squared
+  root position error (m^2), ``e_q`` the sum over hinges of squared joint angle errors (rad^2,
+  DeepMimic's pose term), ``e_alpha`` the mean over hinges of squared joint velocity errors
+  ((rad/s)^2; a sum would make ``exp(-0.5 e)`` vanish for any walking policy), ``e_ee`` the sum
+  over end effectors of squared root-relative position errors (m^2).
+* The style reward (Eq. 11) is a learned term: ``motok.control.amp``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ImitationConfig:
+    k_root: float = 10.0
+    k_q: float = 2.0
+    k_alpha: float = 0.5
+    k_ee: float = 40.0
+
+
+def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict[str, np.ndarray]:
+    """Squared errors ``(N,)`` of body positions ``(N, J, 3)`` (root = body 0), hinge angles and
+    velocities ``(N, H)`` and end effectors ``ee`` (body indices, root-relative)."""
+    rel, rel_ref = pos[:, ee] - pos[:, :1], ref_pos[:, ee] - ref_pos[:, :1]
+    return {"root": ((pos[:, 0] - ref_pos[:, 0]) ** 2).sum(-1), "q": ((q - q_ref) ** 2).sum(-1),
+            "alpha": ((qd - qd_ref) ** 2).mean(-1), "ee": ((rel - rel_ref) ** 2).sum(-1).sum(-1)}
+
+
+def imitation_reward(err: dict[str, np.ndarray], cfg: ImitationConfig) -> dict[str, np.ndarray]:
+    """Eq. 10: ``r_im = exp(-10 e_root) exp(-2 e_q) exp(-0.5 e_alpha) exp(-40 e_ee)`` and its factors."""
+    r = {f"r_{k}": np.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("root", "q", "alpha", "ee")}
+    r["r_im"] = r["r_root"] * r["r_q"] * r["r_alpha"] * r["r_ee"]
+    return r

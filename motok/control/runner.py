@@ -1,0 +1,144 @@
+"""One runner for every control trainer: seeding, the run folder, checkpoints every
+``save_every`` iterations with exact resume, the evaluation hook, metrics, provenance, the MJCF
+and its hash, the progress bar, and ``torchrun``.
+
+A trainer is any object with ``iteration``, ``samples``, ``wall``, ``samples_per_iteration``,
+``model_state()``, ``train_state()`` (identical on every rank: optimisers, counters),
+``rank_state()`` (this rank's generators and buffers), ``load(model, shared, rank)``,
+``spec()`` (what a user of the bundle needs to know: dimensions, action map, clips),
+``start_segment()`` (fresh episodes everywhere) and ``step() -> metrics``.
+
+Exactness: at a checkpoint every environment restarts from a fresh start state, in an
+uninterrupted run as in a resumed one, which is what makes resuming bit-exact without saving
+MuJoCo's solver state. Under ``torchrun`` the networks are initialised from the same seed on
+every rank, each rank then draws from its own streams (:func:`rank_seed`), and rank 0 writes the
+bundle with every rank's state.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+from typing import Callable, Protocol
+
+import torch
+
+from motok import progress as _progress
+from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.checkpoint import (CheckpointError, MetricsLog, load_bundle, rng_state, save_bundle, set_rng_state,
+                              sha256_state)
+from motok.config import to_dict
+from motok.distributed import Dist, gather, init_distributed, shutdown_distributed
+from motok.sim.humanoid import Humanoid
+
+SUMMARY_KEYS = ("episode_return", "episode_seconds", "success", "r_im", "samples_per_s")
+
+
+class Trainer(Protocol):
+    iteration: int
+    samples: int
+    wall: float
+    samples_per_iteration: int
+
+    def model_state(self) -> dict[str, torch.Tensor]: ...
+
+    def train_state(self) -> dict: ...
+
+    def rank_state(self) -> dict: ...
+
+    def load(self, model: dict, shared: dict | None, rank: dict | None) -> None: ...
+
+    def spec(self) -> dict: ...
+
+    def start_segment(self) -> None: ...
+
+    def step(self) -> dict: ...
+
+
+def rank_seed(seed: int, rank: int) -> int:
+    """Rank 0 keeps ``seed`` (a single-process run is the 1-rank case); others get their own stream."""
+    return seed if rank == 0 else seed + 100_003 * rank
+
+
+def mjcf_hash(hum: Humanoid) -> str:
+    return hashlib.sha256(Path(hum.path).read_bytes()).hexdigest()
+
+
+def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, kind: str, resume: bool = False,
+          until: int | None = None, data=None, command: str | None = None, extra: dict | None = None,
+          evaluate: Callable[[Trainer], dict] | None = None, label: str = "train") -> dict:
+    """Train (or resume) into ``run`` until ``cfg.iterations`` (or ``until``); returns a summary.
+    ``cfg`` needs ``seed``, ``iterations``, ``save_every``, ``eval_every`` and ``torch_threads``."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(1, cfg.torch_threads))
+    d = init_distributed()
+    try:
+        return _train(make_trainer, cfg, Path(run), hum, kind, resume, until, data, command, extra or {},
+                      evaluate, label, d)
+    finally:
+        shutdown_distributed(d)
+        torch.set_num_threads(threads)
+
+
+def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command, extra, evaluate, label,
+           d: Dist) -> dict:
+    saved = load_bundle(run, kind, with_train_state=True) if resume else None
+    if saved and saved[0]["extra"].get("mjcf_sha256") != mjcf_hash(hum):
+        raise CheckpointError(f"{run}: the checkpoint was trained on another humanoid (MJCF hash differs)")
+    if saved and int(saved[2].get("world_size", 0)) != d.world:
+        raise CheckpointError(f"{run}: saved by {saved[2].get('world_size', '?')} ranks (an older layout when '?'); "
+                              f"resume it with the same number of ranks, not {d.world}")
+    torch.manual_seed(cfg.seed)  # identical initial weights on every rank, whatever the trainer seeds
+    tr = make_trainer(d)
+    if d.rank:
+        torch.manual_seed(rank_seed(cfg.seed, d.rank))
+    if saved:
+        ts = saved[2]
+        tr.load(saved[1], ts["shared"], ts["ranks"][d.rank])
+        set_rng_state(ts["ranks"][d.rank]["rng"])
+    if d.main:
+        run.mkdir(parents=True, exist_ok=True)
+        if Path(hum.path).resolve() != (run / "humanoid.xml").resolve():
+            shutil.copyfile(hum.path, run / "humanoid.xml")
+    inputs = hash_inputs([data]) if data and d.main else {}
+    prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
+    extra = {"mjcf_sha256": mjcf_hash(hum), **tr.spec(), **extra, "data": str(data) if data else None, "world_size": d.world}
+    log = MetricsLog(run / "metrics.jsonl", resume_from=tr.iteration if saved else None) if d.main else None
+    stop = min(cfg.iterations, until if until is not None else cfg.iterations)
+    per_it = tr.samples_per_iteration
+    last: dict = {}
+
+    def save():
+        ranks = gather({**tr.rank_state(), "rng": rng_state()}, d)
+        hashes = gather(sha256_state(tr.model_state()), d)  # equal on every rank, or the ranks diverged
+        if d.main:
+            if len(set(hashes)) > 1:
+                _progress.info(f"[bold red]warning:[/] ranks diverged at iteration {tr.iteration}: {hashes}")
+            save_bundle(run, kind, tr.model_state(), to_dict(cfg), prov,
+                        train_state={"world_size": d.world, "shared": tr.train_state(), "ranks": ranks},
+                        extra={**extra, "iteration": tr.iteration, "samples": tr.samples, "last_metrics": last,
+                               "rank_state_sha256": hashes})
+
+    tr.start_segment()
+    bar = _progress.make_progress("samples", "ret {task.fields[ret]} len {task.fields[len]}s succ {task.fields[succ]}")
+    if not d.main:
+        bar.disable = True
+    with bar:
+        task = bar.add_task(label, total=stop * per_it, completed=tr.iteration * per_it, ret="-", len="-", succ="-")
+        while tr.iteration < stop:
+            stats = tr.step()
+            if evaluate is not None and cfg.eval_every and tr.iteration % cfg.eval_every == 0 and d.main:
+                stats.update(evaluate(tr))
+            last = {**last, **stats}
+            if log is not None:
+                log.log(stats)
+            bar.update(task, advance=per_it, ret=f"{last.get('episode_return', 0):.1f}",
+                       len=f"{last.get('episode_seconds', 0):.2f}", succ=f"{last.get('success', 0):.2f}")
+            if tr.iteration % cfg.save_every == 0 or tr.iteration == stop:
+                save()
+                tr.start_segment()
+    if not (run / "bundle.json").exists():
+        save()
+    return {"run": str(run), "iterations": tr.iteration, "samples": tr.samples, "wall_s": round(tr.wall, 1),
+            **{k: round(v, 4) for k, v in last.items() if k in SUMMARY_KEYS}}

@@ -1,0 +1,78 @@
+"""The MDP a policy acts in: physics (``HumanoidEnv``) + a task + an action map.
+
+A task is any object with
+
+* ``goal_dim`` and ``reward_key`` (the name of its main reward term, e.g. ``"r_im"``);
+* ``reset(ids, **where)``: put environments ``ids`` in start states (through ``env.set_state``);
+* ``goal() -> (N, goal_dim)``: the task part of the policy input, after a reset or step;
+* ``update(diverged, invalid) -> (rewards, terminated, truncated, info)`` after a physics step,
+  ``rewards`` a dict of ``(N,)`` terms that holds ``reward_key``.
+
+There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
+episodes) and then calls ``reset(ids)`` for the finished environments.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+from motok.sim.env import HumanoidEnv
+
+ActionMap = Callable[[np.ndarray, HumanoidEnv, "Task"], np.ndarray]  # (actions, env, task) -> PD targets
+
+
+class Task(Protocol):
+    goal_dim: int
+    reward_key: str
+
+    def reset(self, ids: np.ndarray, **where) -> None: ...
+
+    def goal(self) -> np.ndarray: ...
+
+    def update(self, diverged: np.ndarray, invalid: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray, dict]: ...
+
+
+class TaskEnv:
+    """``reset`` / ``step`` over physics, task and action map; see the module docstring."""
+
+    def __init__(self, env: HumanoidEnv, task: Task, action_map: ActionMap):
+        self.env, self.task, self.action_map = env, task, action_map
+        self.num_envs, self.dt = env.num_envs, env.dt
+        self._started = False
+
+    @property
+    def obs_dim(self) -> int:
+        return self.env.obs_dim
+
+    @property
+    def goal_dim(self) -> int:
+        return self.task.goal_dim
+
+    @property
+    def action_dim(self) -> int:
+        return self.env.action_dim
+
+    def reset(self, ids=None, **where) -> tuple[np.ndarray, np.ndarray]:
+        """Start new episodes in ``ids`` (all by default); returns the full ``(obs, goal)`` arrays."""
+        N = self.num_envs
+        ids = np.arange(N) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        if ids.size and (ids.min() < 0 or ids.max() >= N):
+            raise IndexError(f"environment ids must be in 0..{N - 1}, got {ids.tolist()}")
+        if not self._started and len(ids) != N:
+            self.reset()  # every environment needs an episode before a subset can be restarted
+        self._started = True
+        self.task.reset(ids, **where)
+        return self.env.observation(), self.task.goal()
+
+    def step(self, actions: np.ndarray):
+        """``(obs, goal, rewards, terminated, truncated, info)`` after one control step."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(actions)
+        if a.ndim < 1 or len(a) != self.num_envs:
+            raise ValueError(f"actions must have {self.num_envs} rows, got shape {a.shape}")
+        diverged, invalid = self.env.step(self.action_map(a, self.env, self.task))
+        rewards, terminated, truncated, info = self.task.update(diverged, invalid)
+        return self.env.observation(), self.task.goal(), rewards, terminated, truncated, info

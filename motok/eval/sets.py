@@ -1,0 +1,108 @@
+"""Motion sets: the rows the T2M protocol (:mod:`motok.eval.protocol`) measures, read from
+artifacts. The real motion of a split, a tokenizer's reconstruction of it, and any ``motion``
+artifact (GPT samples from :mod:`motok.eval.generate` included) all become a
+:class:`MotionSet`: raw features per clip, each clip's captions, and how repeats use them.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from motok.data.dataset import MotionFile
+from motok.eval import metrics as M
+from motok.eval.evaluator import UNIT, EvaluatorError, load_split
+from motok.features.humanml3d import recover_from_ric
+
+
+@dataclass
+class MotionSet:
+    """One row's motions: raw features per clip, each clip's captions, and how repeats use them."""
+    name: str
+    clips: list[np.ndarray]
+    captions: list[list[str]]
+    sample: np.ndarray | None = None  # per clip; repeat r uses the clips with sample == r mod (max + 1)
+    mm_groups: list[list[int]] = field(default_factory=list)  # clip indices generated for one caption
+    mm_clips: list[np.ndarray] = field(default_factory=list)
+    joints: list[np.ndarray] | None = None  # for the physical metrics (else recovered from features)
+    extra: dict = field(default_factory=dict)
+
+    def for_repeat(self, r: int) -> list[int]:
+        if self.sample is None:
+            return list(range(len(self.clips)))
+        return list(np.flatnonzero(self.sample == r % (int(self.sample.max()) + 1)))
+
+
+def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
+    """The captioned clips of ``split`` and what the other rows need of the dataset (fps, feet, names)."""
+    with MotionFile(data, "motion-dataset") as mf:
+        sd = load_split(mf, split)
+        if len(sd.clips) < 2:
+            raise EvaluatorError(f"{data}: split {split!r} has {len(sd.clips)} captioned clip(s) "
+                                 f"(splits: {sorted(set(mf.splits))})")
+        idx = [mf.index(n) for n in sd.names]
+        joints = [mf.frames("joints", i) for i in idx]
+        sk = mf.skeleton
+        info = {"fps": mf.fps, "feet": (tuple(sk.feet_left), tuple(sk.feet_right)), "num_joints": sk.num_joints,
+                "names": sd.names, "labels": sd.labels}
+    return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints}), info
+
+
+def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: int | None = None) -> MotionSet:
+    """Every clip through the tokenizer (cut to a multiple of its rate, as ``tokenize eval``)."""
+    import torch
+
+    from motok.tokenizer.train import load_tokenizer
+    model, meta = load_tokenizer(tokenizer)
+    m = num_codebooks or model.num_codebooks
+    clips, caps, err = [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
+    with torch.no_grad():
+        for c, cap, j in zip(ref.clips, ref.captions, ref.joints):
+            T = len(c) // model.rate * model.rate
+            if T < UNIT:
+                continue
+            codes = model.encode_features(torch.from_numpy(np.asarray(c[:T]))[None], m)[..., :m]
+            pred = model.decode_features(codes, m)[0].numpy()
+            clips.append(pred)
+            caps.append(cap)
+            pj = recover_from_ric(pred.astype(np.float64), num_joints)
+            gj = recover_from_ric(np.asarray(c[:T], np.float64), num_joints)
+            err["mpjpe"].append(M.mpjpe(pj, gj))
+            err["mpjpe_global"].append(M.mpjpe(pj, gj, root_relative=False))
+            err["accel"].append(M.acceleration_error(pj, gj))
+    recon = {"mpjpe_mm": float(np.concatenate(err["mpjpe"]).mean()),
+             "mpjpe_global_mm": float(np.concatenate(err["mpjpe_global"]).mean()),
+             "accel_error_mm": float(np.concatenate(err["accel"]).mean())}
+    return MotionSet(f"reconstruction ({Path(tokenizer).name})", clips, caps,
+                     extra={"num_joints": num_joints, "recon": recon, "tokenizer": str(tokenizer),
+                            "tokenizer_sha256": meta["model_sha256"]})
+
+
+def motion_set(path: Path, name: str | None = None) -> MotionSet:
+    """Any ``motion`` artifact. Clips labelled ``role: mm`` (or, without roles, several ``sample``
+    labels per caption) feed MModality; ``sample`` labels spread the others over the repeats."""
+    with MotionFile(path) as mf:
+        sd = load_split(mf, None)
+        if not sd.clips:
+            raise EvaluatorError(f"{path}: no clip has a caption; the t2m metrics need the text of every motion")
+        idx = [mf.index(n) for n in sd.names]
+        joints = [mf.frames("joints", i) for i in idx]
+        J = mf.skeleton.num_joints
+    labels = [json.loads(x) if x else {} for x in sd.labels]
+    roles = [lab.get("role", "") for lab in labels]
+    main = [k for k, r in enumerate(roles) if r != "mm"]
+    mm = [k for k, r in enumerate(roles) if r == "mm"] if "mm" in roles else \
+        [k for k in main if "sample" in labels[k]]
+    groups: dict[tuple, list[int]] = {}
+    for pos, k in enumerate(mm):
+        # By source clip too: two clips with one caption text are still two MModality captions.
+        groups.setdefault((labels[k].get("source"), labels[k].get("text", sd.captions[k][0])), []).append(pos)
+    samples = [labels[k].get("sample") for k in main]
+    sample = np.array(samples, dtype=np.int64) if all(s is not None for s in samples) else None
+    return MotionSet(name or Path(path).stem, [sd.clips[k] for k in main], [sd.captions[k] for k in main],
+                     sample=sample, mm_groups=[g for g in groups.values() if len(g) > 1],
+                     mm_clips=[sd.clips[k] for k in mm], joints=[joints[k] for k in main],
+                     extra={"num_joints": J, "motions_file": str(path)})

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -27,7 +27,7 @@ import torch
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import atomic_path
-from motok.checkpoint import CheckpointError, load_bundle, register_kind
+from motok.checkpoint import CheckpointError, bundle_ref, load_bundle, register_kind
 from motok.config import from_dict
 from motok.control import runner
 from motok.control.clips import select_clips
@@ -71,7 +71,8 @@ class ExpertConfig:
     save_every: int = 50
     eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
     eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every training clip)
-    torch_threads: int = 1  # 2 fights MuJoCo's worker threads on a 2-core machine: 3x slower updates
+    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
+    update_threads: int = 0  # during the PPO and discriminator updates (0: torch_threads)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
     task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)
     action: ActionConfig = field(default_factory=ActionConfig)
@@ -107,15 +108,20 @@ class ExpertTrainer:
         seed = runner.rank_seed(cfg.seed, d.rank)
         self.amp_rng = np.random.default_rng(seed + 1)
         self.hum, self.lib = hum, lib
-        self.mdp = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, seed)
-        m = self.mdp
+        G = cfg.env.groups
+        if G < 1 or cfg.env.num_envs % G:
+            raise UserError(f"env.groups must divide env.num_envs ({cfg.env.num_envs}), not {G}")
+        part = replace(cfg.env, num_envs=cfg.env.num_envs // G)
+        # Group 0 keeps the single-group streams, so groups: 1 is the plain sequential rollout.
+        self.mdps = [imitation_mdp(hum, lib, part, cfg.task, cfg.action, seed + 7919 * g) for g in range(G)]
+        self.mdp = m = self.mdps[0]
         self.ac = build_actor_critic(cfg.net, m.obs_dim, m.goal_dim, m.action_dim)
         self.ppo = PPO(self.ac, cfg.ppo, cfg.iterations)
         use_amp = cfg.amp.enabled and cfg.w_style != 0
         self.amp = AMP(cfg.amp, reference_observations(lib, m.env.end_effectors), lib.starts) if use_amp else None
         hooks = (AMPHook(self.amp, cfg.w_style, self.amp_rng),) if self.amp else ()
-        self.collector = Collector(m, self.ac, cfg.ppo.horizon, cfg.w_im, hooks)
-        self.samples_per_iteration = cfg.ppo.horizon * m.num_envs * d.world
+        self.collector = Collector(self.mdps, self.ac, cfg.ppo.horizon, cfg.w_im, hooks)
+        self.samples_per_iteration = cfg.ppo.horizon * self.collector.num_envs * d.world
         self.iteration, self.samples, self.wall = 0, 0, 0.0
         self.dist = d
         self.sampler = DifficultySampler(cfg.sampling, np.maximum(lib.lengths - (cfg.task.goal_frames + 1), 0))
@@ -135,7 +141,8 @@ class ExpertTrainer:
         return ts
 
     def rank_state(self) -> dict:
-        rs = {"task_rng": _json_rng(self.mdp.task.rng), "amp_rng": _json_rng(self.amp_rng)}
+        rs = {"task_rng": _json_rng(self.mdp.task.rng), "amp_rng": _json_rng(self.amp_rng),
+              "group_task_rngs": [_json_rng(m.task.rng) for m in self.mdps[1:]]}
         if self.amp is not None:
             rs["replay"] = self.amp.replay.state()
         return rs
@@ -149,8 +156,10 @@ class ExpertTrainer:
         self.iteration, self.samples, self.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
         self.ppo.opt.load_state_dict(shared["ppo_opt"])
         self.sampler.load(shared["sampler"])
-        self.mdp.task.clip_p = self.sampler.probabilities()
+        self._set_clip_p()
         self.mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+        for m, st in zip(self.mdps[1:], rank.get("group_task_rngs", [])):
+            m.task.rng.bit_generator.state = json.loads(st)
         self.amp_rng.bit_generator.state = json.loads(rank["amp_rng"])
         if self.amp is not None:
             self.amp.opt.load_state_dict(shared["amp_opt"])
@@ -164,7 +173,9 @@ class ExpertTrainer:
         t0 = time.perf_counter()
         ro, last_value, stats = self.collector.collect()
         t1 = time.perf_counter()
-        stats.update(self.ppo.update(ro, last_value, self.iteration))
+        with runner.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
+            stats.update(self.collector.update_hooks())
+            stats.update(self.ppo.update(ro, last_value, self.iteration))
         n = self.samples_per_iteration
         self.iteration += 1
         self.samples += n
@@ -179,6 +190,10 @@ class ExpertTrainer:
             stats.update(wall_s=round(self.wall, 2), difficulty_s=time.perf_counter() - t2)
         return stats
 
+    def _set_clip_p(self) -> None:
+        for m in self.mdps:
+            m.task.clip_p = self.sampler.probabilities()
+
     def measure_difficulty(self) -> dict:
         """Every training clip from frame 0 (each rank a share), then new start-clip probabilities."""
         c, d, lib = self.cfg, self.dist, self.lib
@@ -186,7 +201,7 @@ class ExpertTrainer:
         res = evaluate(self.hum, self.ac, lib, c.env, c.task, c.action, batch=c.sampling.eval_batch, clips=mine)
         per = {k: v for part in gather(res["clips"], d) for k, v in part.items()}
         stats = self.sampler.update(failures(per, lib.names), self.iteration)
-        self.mdp.task.clip_p = self.sampler.probabilities()
+        self._set_clip_p()
         o = summarise(per)
         stats.update(train_mpjpe_mm=o["mpjpe_mm"], train_seconds=o["seconds_played"] / len(per))
         return stats
@@ -264,9 +279,7 @@ def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None 
         cfg.task.termination = termination
     if distance is not None:
         cfg.task.termination_distance = distance
-    src = data or meta["extra"].get("data")
-    if not src:
-        raise UserError(f"{run} does not record its dataset: pass --data")
+    src = data or bundle_ref(run, meta, "data", hint="; pass --data")
     names = select_clips(src, clips, split) if clips or split else meta["extra"]["clips"]
     lib = load_library(hum, src, control_hz=cfg.env.control_hz, clips=names)
     res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -33,6 +34,8 @@ from motok.distributed import Dist, gather, init_distributed, shutdown_distribut
 from motok.sim.humanoid import Humanoid
 
 SUMMARY_KEYS = ("episode_return", "episode_seconds", "success", "r_im", "samples_per_s")
+# What the progress bar shows after the rate: (label, metric key, format).
+BAR_FIELDS = (("ret", "episode_return", "{:.1f}"), ("len", "episode_seconds", "{:.2f}s"), ("succ", "success", "{:.2f}"))
 
 
 class Trainer(Protocol):
@@ -56,6 +59,18 @@ class Trainer(Protocol):
     def step(self) -> dict: ...
 
 
+@contextmanager
+def torch_threads(n: int):
+    """``n`` torch threads inside the block: on a 2-core machine the rollout wants 1 (MuJoCo's
+    workers have the cores) and the learning steps 2 (the physics is idle then)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(n)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def rank_seed(seed: int, rank: int) -> int:
     """Rank 0 keeps ``seed`` (a single-process run is the 1-rank case); others get their own stream."""
     return seed if rank == 0 else seed + 100_003 * rank
@@ -67,22 +82,24 @@ def mjcf_hash(hum: Humanoid) -> str:
 
 def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, kind: str, resume: bool = False,
           until: int | None = None, data=None, command: str | None = None, extra: dict | None = None,
-          evaluate: Callable[[Trainer], dict] | None = None, label: str = "train") -> dict:
-    """Train (or resume) into ``run`` until ``cfg.iterations`` (or ``until``); returns a summary.
-    ``cfg`` needs ``seed``, ``iterations``, ``save_every``, ``eval_every`` and ``torch_threads``."""
+          evaluate: Callable[[Trainer], dict] | None = None, label: str = "train",
+          fields: tuple = BAR_FIELDS, summary_keys: tuple = SUMMARY_KEYS) -> dict:
+    """Train (or resume) into ``run`` until ``cfg.iterations`` (or ``until``); returns a summary
+    (the last values of ``summary_keys``). ``cfg`` needs ``seed``, ``iterations``, ``save_every``,
+    ``eval_every`` and ``torch_threads``; ``fields`` are the progress bar's metrics."""
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, cfg.torch_threads))
     d = init_distributed()
     try:
         return _train(make_trainer, cfg, Path(run), hum, kind, resume, until, data, command, extra or {},
-                      evaluate, label, d)
+                      evaluate, label, d, tuple(fields), tuple(summary_keys))
     finally:
         shutdown_distributed(d)
         torch.set_num_threads(threads)
 
 
 def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command, extra, evaluate, label,
-           d: Dist) -> dict:
+           d: Dist, fields: tuple, summary_keys: tuple) -> dict:
     saved = load_bundle(run, kind, with_train_state=True) if resume else None
     if saved and saved[0]["extra"].get("mjcf_sha256") != mjcf_hash(hum):
         raise CheckpointError(f"{run}: the checkpoint was trained on another humanoid (MJCF hash differs)")
@@ -103,7 +120,7 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
             shutil.copyfile(hum.path, run / "humanoid.xml")
     inputs = hash_inputs([data]) if data and d.main else {}
     prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
-    extra = {"mjcf_sha256": mjcf_hash(hum), **tr.spec(), **extra, "data": str(data) if data else None, "world_size": d.world}
+    extra = {"mjcf_sha256": mjcf_hash(hum), **tr.spec(), **extra, "data": Path(data) if data else None, "world_size": d.world}
     log = MetricsLog(run / "metrics.jsonl", resume_from=tr.iteration if saved else None) if d.main else None
     stop = min(cfg.iterations, until if until is not None else cfg.iterations)
     per_it = tr.samples_per_iteration
@@ -121,11 +138,12 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
                                "rank_state_sha256": hashes})
 
     tr.start_segment()
-    bar = _progress.make_progress("samples", "ret {task.fields[ret]} len {task.fields[len]}s succ {task.fields[succ]}")
+    bar = _progress.make_progress("samples", " ".join(f"{name} {{task.fields[{name}]}}" for name, _, _ in fields))
     if not d.main:
         bar.disable = True
     with bar:
-        task = bar.add_task(label, total=stop * per_it, completed=tr.iteration * per_it, ret="-", len="-", succ="-")
+        task = bar.add_task(label, total=stop * per_it, completed=tr.iteration * per_it,
+                            **{name: "-" for name, _, _ in fields})
         while tr.iteration < stop:
             stats = tr.step()
             if evaluate is not None and cfg.eval_every and tr.iteration % cfg.eval_every == 0 and d.main:
@@ -133,12 +151,12 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
             last = {**last, **stats}
             if log is not None:
                 log.log(stats)
-            bar.update(task, advance=per_it, ret=f"{last.get('episode_return', 0):.1f}",
-                       len=f"{last.get('episode_seconds', 0):.2f}", succ=f"{last.get('success', 0):.2f}")
+            bar.update(task, advance=per_it, **{name: fmt.format(last[key]) if key in last else "-"
+                                                for name, key, fmt in fields})
             if tr.iteration % cfg.save_every == 0 or tr.iteration == stop:
                 save()
                 tr.start_segment()
     if not (run / "bundle.json").exists():
         save()
     return {"run": str(run), "iterations": tr.iteration, "samples": tr.samples, "wall_s": round(tr.wall, 1),
-            **{k: round(v, 4) for k, v in last.items() if k in SUMMARY_KEYS}}
+            **{k: round(v, 4) for k, v in last.items() if k in summary_keys}}

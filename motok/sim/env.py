@@ -9,6 +9,11 @@ What a policy is asked to do (goals, rewards, terminations, reference states) is
 stage's business (``motok.control.mdp`` terms composed into ``motok.control.tasks``); this module
 knows no reference motion and draws no random numbers.
 
+``launch(targets)`` / ``finish()`` split a step in two: the physics runs on a worker thread
+(MuJoCo releases the GIL while it steps) until ``finish`` collects it, so the caller can run a
+policy on other environments meanwhile (``motok.control.rollout`` steps groups of environments
+in turn this way). ``step`` is ``launch`` then ``finish``, with no thread.
+
 Bad input stays contained: targets with non-finite entries either raise before anything is
 stepped (``nan_actions="raise"``) or hold that environment's current pose for the step and are
 reported as ``invalid`` (``"terminate"``), the other environments stepping normally. A
@@ -34,6 +39,7 @@ class SimConfig:
     nthread: int = 2
     stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available
     nan_actions: str = "raise"  # or "terminate": that env holds its pose and is reported invalid
+    groups: int = 1  # environment groups a collector steps in turn, each while the policy runs on another
 
 
 class HumanoidEnv:
@@ -62,6 +68,8 @@ class HumanoidEnv:
         self.end_effectors = list(self.hum.skeleton.end_effectors)
         self.bodies: Bodies = self.stepper.bodies()
         self._obs = observation(self.qpos, self.qvel, self.bodies, self.end_effectors)
+        self._worker = None  # a one-thread executor, created by the first threaded launch
+        self._pending = None
 
     @property
     def action_dim(self) -> int:
@@ -96,8 +104,7 @@ class HumanoidEnv:
             self.bodies.put(ids, sim)
         self._obs[ids] = observation(self.qpos[ids], self.qvel[ids], sim, self.end_effectors)
 
-    def step(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Hold PD targets ``(N, nu)`` for one control step; returns ``(diverged, invalid)``."""
+    def _checked(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(targets, dtype=np.float64)
         if q.shape != (self.num_envs, self.action_dim):
             raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_dim}), got {q.shape}")
@@ -107,7 +114,33 @@ class HumanoidEnv:
                 raise ValueError(f"non-finite actions for environments {np.flatnonzero(invalid).tolist()}; "
                                  "nothing was stepped (set nan_actions='terminate' to end those episodes instead)")
             q = np.where(invalid[:, None], self.qpos[:, self.hinge_adr], q)
-        diverged = self.stepper.step(np.clip(q, self.ctrl_low, self.ctrl_high))
+        return np.clip(q, self.ctrl_low, self.ctrl_high), invalid
+
+    def launch(self, targets: np.ndarray, threaded: bool = True) -> None:
+        """Start one control step with PD targets ``(N, nu)``; :meth:`finish` completes it."""
+        if self._pending is not None:
+            raise RuntimeError("finish() the step in flight before launching another")
+        ctrl, invalid = self._checked(targets)
+        if threaded:
+            if self._worker is None:
+                from concurrent.futures import ThreadPoolExecutor
+                self._worker = ThreadPoolExecutor(1, thread_name_prefix="motok-physics")
+            self._pending = (self._worker.submit(self.stepper.step, ctrl), invalid)
+        else:
+            self._pending = (self.stepper.step(ctrl), invalid)
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """Wait for the step in flight; refresh body states and observations; ``(diverged, invalid)``."""
+        if self._pending is None:
+            raise RuntimeError("no step in flight: launch() first")
+        result, invalid = self._pending
+        self._pending = None
+        diverged = result.result() if hasattr(result, "result") else result
         self.bodies = self.stepper.bodies()
         self._obs = observation(self.qpos, self.qvel, self.bodies, self.end_effectors)
         return diverged, invalid
+
+    def step(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hold PD targets ``(N, nu)`` for one control step; returns ``(diverged, invalid)``."""
+        self.launch(targets, threaded=False)
+        return self.finish()

@@ -66,13 +66,22 @@ class TaskEnv:
         self.task.reset(ids, **where)
         return self.env.observation(), self.task.goal()
 
-    def step(self, actions: np.ndarray):
-        """``(obs, goal, rewards, terminated, truncated, info)`` after one control step."""
+    def launch(self, actions: np.ndarray, threaded: bool = True) -> None:
+        """Start a control step (physics on a worker thread when ``threaded``); :meth:`finish` ends it."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
         a = np.asarray(actions)
         if a.ndim < 1 or len(a) != self.num_envs:
             raise ValueError(f"actions must have {self.num_envs} rows, got shape {a.shape}")
-        diverged, invalid = self.env.step(self.action_map(a, self.env, self.task))
+        self.env.launch(self.action_map(a, self.env, self.task), threaded)
+
+    def finish(self):
+        """``(obs, goal, rewards, terminated, truncated, info)`` of the step in flight."""
+        diverged, invalid = self.env.finish()
         rewards, terminated, truncated, info = self.task.update(diverged, invalid)
         return self.env.observation(), self.task.goal(), rewards, terminated, truncated, info
+
+    def step(self, actions: np.ndarray):
+        """``(obs, goal, rewards, terminated, truncated, info)`` after one control step."""
+        self.launch(actions, threaded=False)
+        return self.finish()

@@ -137,6 +137,7 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
                         extra={**extra, "iteration": tr.iteration, "samples": tr.samples, "last_metrics": last,
                                "rank_state_sha256": hashes})
 
+    wrote = False
     tr.start_segment()
     bar = _progress.make_progress("samples", " ".join(f"{name} {{task.fields[{name}]}}" for name, _, _ in fields))
     if not d.main:
@@ -155,8 +156,11 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
                                                 for name, key, fmt in fields})
             if tr.iteration % cfg.save_every == 0 or tr.iteration == stop:
                 save()
+                wrote = True
                 tr.start_segment()
-    if not (run / "bundle.json").exists():
+    # Decided from state every rank shares: a file check could race rank 0's write and leave one
+    # rank alone in a collective.
+    if not wrote and not saved:
         save()
     return {"run": str(run), "iterations": tr.iteration, "samples": tr.samples, "wall_s": round(tr.wall, 1),
             **{k: round(v, 4) for k, v in last.items() if k in summary_keys}}

@@ -264,8 +264,11 @@ def test_control_recipes_load_with_their_measured_choices():
 
     from motok.config import load_config
     root = Path(__file__).resolve().parent.parent / "recipes" / "control"
-    small, paper = (load_config(ExpertConfig, root / f"{n}.yaml") for n in ("expert", "expert_paper"))
-    for cfg in (small, paper):
+    small, paper, set2 = (load_config(ExpertConfig, root / f"{n}.yaml") for n in ("expert", "expert_paper", "expert_set2"))
+    for cfg in (paper, set2):  # whole-dataset recipes: difficulty sampling and a stratified eval subset
+        assert cfg.sampling.hard_fraction == 0.5 and cfg.sampling.every > 0 and cfg.eval_per_group == 2
+    assert small.sampling.hard_fraction == 0.0 and set2.update_threads == 2 and set2.env == small.env
+    for cfg in (small, paper, set2):
         assert cfg.action.base == "reference" and cfg.task.termination == "mean" and cfg.eval_every > 0
         assert (cfg.w_im, cfg.w_style) == (0.5, 0.5) and cfg.ppo.gamma == 0.99 and cfg.ppo.lam == 0.95
     assert paper.env.num_envs >= 4096 > small.env.num_envs

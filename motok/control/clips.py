@@ -8,10 +8,10 @@ from motok.errors import UserError
 
 
 def select_clips(data, pattern: str | None, split: str | None = None) -> list[str]:
-    """Names of the clips of the ``motion-dataset`` at ``data`` in ``split`` (train, val, test;
+    """Names of the clips of the motion artifact at ``data`` in ``split`` (train, val, test;
     all if None) matching the glob ``pattern`` (all if None)."""
     from motok.data.dataset import MotionFile
-    with MotionFile(data, "motion-dataset") as mf:
+    with MotionFile(data) as mf:
         names = list(mf.names)
         if split is not None:
             if split not in mf.splits:

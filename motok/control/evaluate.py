@@ -31,9 +31,11 @@ def eval_metrics(res: dict, prefix: str = "eval_") -> dict:
             f"{prefix}g_mpjpe_mm": o["g_mpjpe_mm"]}
 
 
-def _play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfig, action: ActionConfig,
-          keep_qpos: bool) -> dict:
-    """One batch of clips ``ids`` from frame 0 until each ends or fails."""
+def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfig, action: ActionConfig,
+         keep_qpos: bool = False) -> dict:
+    """One batch of clips ``ids`` from frame 0 until each ends or fails: simulated and reference body
+    positions ``(N, T + 1, J, 3)`` with the ``alive`` mask of the frames each clip played, and the
+    first environment's qpos when ``keep_qpos``."""
     N = len(ids)
     env = HumanoidEnv(hum, replace(sim, num_envs=N))
     # The generator is never drawn from: every start is given.
@@ -82,7 +84,7 @@ def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConf
         first = render is not None and 0 in ids
         if first:  # the rendered clip leads its batch, so its qpos are row 0
             ids = np.concatenate([[0], ids[ids != 0]])
-        out = _play(hum, ac, lib, ids, sim, tcfg, action, keep_qpos=first)
+        out = play(hum, ac, lib, ids, sim, tcfg, action, keep_qpos=first)
         if first:
             video_qpos = (out["qpos"], int(out["played"][0]))
         for k, i in enumerate(ids):

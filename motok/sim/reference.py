@@ -144,9 +144,9 @@ class ReferenceLibrary:
 
 
 def build_library(hum: Humanoid, data_path, control_hz: float | None = None, clips=None) -> ReferenceLibrary:
-    """Build the library for ``clips`` (names or indices; all by default) of a motion-dataset."""
+    """Build the library for ``clips`` (names or indices; all by default) of a motion artifact."""
     hz = float(control_hz or hum.control_hz)
-    with MotionFile(data_path, "motion-dataset") as mf:
+    with MotionFile(data_path) as mf:  # a dataset, decoded tokens, GPT samples: any motion artifact
         if [n for n in mf.skeleton.joints] != list(hum.skeleton.joints):
             raise ReferenceError(f"{data_path}: skeleton {mf.skeleton.name!r} does not match the humanoid's "
                                  f"{hum.skeleton.name!r}; build the humanoid from this dataset")

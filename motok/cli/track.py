@@ -1,0 +1,42 @@
+"""``motok control track``: any motion artifact tracked in MuJoCo by a physics controller, written
+back as a motion artifact. Arguments only; the work is in ``motok.control.track``.
+:func:`register` adds the command to the ``motok control`` app."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from motok.cli.common import JsonOut, input_option, output_option, report, results, run
+from motok.cli.conventions import examples
+
+
+def track_cmd(
+    motion: Path = input_option("--motion", help="A motion artifact: a dataset, decoded tokens, GPT samples."),
+    expert: Path = input_option("--expert", help="The controller: a control-expert run folder."),
+    out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),
+    render: Optional[Path] = output_option("--render", help="Video of the first clip, the kinematic motion as a "
+                                           "ghost (.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
+    as_json: bool = JsonOut,
+):
+    """Track every clip from its first frame; write the simulated bodies at the motion's frame rate."""
+    from motok.control.expert import load_expert
+    from motok.control.track import track
+
+    res = run(lambda: track(load_expert(expert), motion, out, clips=clips, render=render))
+    per = res.pop("per_clip")
+    report(res, as_json, "control track")
+    if not as_json:
+        for name, r in per.items():
+            if "error" in r:
+                results.print(f"{name}: {r['error']}", soft_wrap=True, highlight=False)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("track", epilog=examples(
+        "motok control track --motion walk.h5 --expert runs/expert -o walk_sim.h5 --render walk_sim.mp4",
+        "motok control track --motion runs/bandai2.h5 --clips 'dataset-2_run_*' --expert runs/expert -o run_sim.h5",
+    ))(track_cmd)

@@ -1,0 +1,139 @@
+"""Kinematic motion in, physically simulated motion out (``motok control track``).
+
+Any motion artifact (a dataset, decoded tokens, GPT samples) becomes the reference of the
+imitation task; a controller (the expert, later the distilled prior's posterior and decoder)
+tracks every clip from its first frame in MuJoCo until the clip ends or the tracking fails (the
+controller's own failure test); the simulated bodies are written back as a ``motion`` artifact at
+the motion's frame rate, so ``motok eval``, ``render`` and ``export bvh`` read it like any other.
+
+**Start state.** Generated motion starts wherever the generator put it: above the floor, or with
+feet through it. Each clip is moved vertically, as a whole, so that the lowest point the
+humanoid's geometry reaches over the clip is :data:`~motok.control.mdp.resets.RESET_CLEARANCE`
+above the floor (the floor contact of the motion's lowest moment; a constant shift keeps its
+jumps and crouches). The simulation starts at frame 0 of that placed motion with the reference
+velocities, which the library differentiates from the frames (``mj_differentiatePos``), so the
+character starts moving the way the motion does.
+
+**Output.** The simulated body positions are the skeleton's joint positions (one body per joint,
+docs/sim.md), taken back to the data frame (Y up), resampled from the control rate to the
+motion's frame rate, and put through the feature pipeline (``extract_features``: the uniform
+skeleton of the input, floor, facing +Z), so features, joints, local rotations and root
+translation all describe the simulated motion. A clip that fails keeps the part played.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.control.evaluate import play
+from motok.control.mdp.resets import RESET_CLEARANCE
+from motok.data.dataset import Clip, MotionFile, write_motion
+from motok.errors import UserError
+from motok.eval.metrics import mpjpe
+from motok.features.humanml3d import extract_features
+from motok.features.resample import resample_positions
+from motok.sim.reference import ReferenceLibrary, load_library
+
+MIN_FRAMES = 4  # frames a clip needs at the control rate: a step with one frame of goal ahead, and features
+
+
+def from_mj(v: np.ndarray) -> np.ndarray:
+    """MuJoCo (Z up, X forward) -> data frame (Y up): the inverse of ``motok.sim.humanoid.to_mj``."""
+    return np.asarray(v)[..., [1, 2, 0]]
+
+
+def place_on_floor(lib: ReferenceLibrary) -> tuple[ReferenceLibrary, np.ndarray]:
+    """Each clip shifted vertically so its lowest geometry point over the clip sits at the reset
+    clearance; returns the placed library and the shift per clip (m, + up)."""
+    shift = np.array([RESET_CLEARANCE - lib.lowest[a:b].min() for a, b in zip(lib.starts[:-1], lib.starts[1:])])
+    per_frame = np.repeat(shift, lib.lengths)
+    qpos, body_pos, joints = lib.qpos.copy(), lib.body_pos.copy(), lib.joints.copy()
+    qpos[:, 2] += per_frame
+    body_pos[..., 2] += per_frame[:, None]
+    joints[..., 2] += per_frame[:, None]
+    return replace(lib, qpos=qpos, body_pos=body_pos, joints=joints, lowest=lib.lowest + per_frame), shift
+
+
+def _clip(ref: Clip, sim_pos: np.ndarray, control_hz: float, fps: float, skeleton, offsets, legacy: bool,
+          source: str) -> Clip:
+    """The simulated clip, with the reference clip's split, labels and captions (so text metrics apply)."""
+    pos = from_mj(sim_pos)
+    if abs(control_hz - fps) > 1e-6:
+        pos = resample_positions(pos, control_hz, fps)
+    f = extract_features(pos, skeleton, target_offsets=offsets, fps=fps, legacy=legacy)
+    return Clip(ref.name, f.features, f.joints, f.local_quats, f.root_translation, source=source, source_fps=fps,
+                split=ref.split, labels=ref.labels, captions=ref.captions)
+
+
+def track(controller, motion, out, *, clips: str | None = None, render=None, batch: int = 256) -> dict:
+    """Track the clips of ``motion`` (all, or the ``clips`` glob) with ``controller``, a
+    ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
+    returns, and write the simulated clips to ``out``. Returns per-clip and overall results."""
+    from motok.control.clips import select_clips
+
+    cfg, hum, ac, meta = controller
+    motion, out = Path(motion), Path(out)
+    with MotionFile(motion) as mf:
+        names = select_clips(motion, clips) if clips else list(mf.names)
+        fps, skeleton, legacy = mf.fps, mf.skeleton, mf.legacy
+        offsets = np.asarray(mf.offsets, dtype=np.float64)
+        refs = {n: mf.clip(n) for n in names}
+    lengths = {n: c.num_frames for n, c in refs.items()}
+    hz = float(cfg.env.control_hz or hum.control_hz)
+    short = [n for n in names if int(lengths[n] * hz / fps) < MIN_FRAMES]
+    kept = [n for n in names if n not in short]
+    if not kept:
+        raise UserError(f"{motion}: no clip is long enough to track (at least {MIN_FRAMES} frames at {hz:g} Hz)")
+    lib, shift = place_on_floor(load_library(hum, motion, control_hz=hz, clips=kept))
+    task = replace(cfg.task, max_episode_seconds=1e9)
+    per, written, video = {}, [], None
+    order = np.argsort(-lib.lengths, kind="stable")
+    for start in range(0, len(order), batch):
+        ids = order[start:start + batch]
+        first = render is not None and 0 in ids
+        if first:
+            ids = np.concatenate([[0], ids[ids != 0]])
+        res = play(hum, ac, lib, ids, cfg.env, task, cfg.action, keep_qpos=first)
+        if first:
+            video = (res["qpos"], int(res["played"][0]))
+        for k, i in enumerate(ids):
+            alive = res["alive"][k]
+            p, r = res["pos"][k, alive], res["ref"][k, alive]
+            name = lib.names[i]
+            per[name] = {"tracked_to_end": bool(res["success"][k]), "seconds": float(res["played"][k] / hz),
+                         "clip_seconds": float((lib.lengths[i] - 1 - task.goal_frames) / hz),
+                         "floor_shift_m": float(shift[i]), "mpjpe_mm": float(mpjpe(p, r).mean()),
+                         "g_mpjpe_mm": float(mpjpe(p, r, root_relative=False).mean())}
+            if len(p) * fps / hz >= 2:
+                written.append(_clip(refs[name], p, hz, fps, skeleton, offsets, legacy, source=str(motion)))
+            else:
+                per[name]["error"] = "failed before two frames at the motion's rate were simulated: nothing written"
+    for n in short:
+        per[n] = {"tracked_to_end": False, "error": f"{lengths[n]} frames at {fps:g} fps: too short to track "
+                                                     f"(at least {MIN_FRAMES} frames at {hz:g} Hz)"}
+    if not written:
+        raise UserError(f"{motion}: no clip could be tracked ({next(iter(per.values())).get('error', '')})")
+    ordered = {n: per[n] for n in names}
+    written.sort(key=lambda c: names.index(c.name))
+    prov = Provenance(command=command_line(), config={"motion": str(motion), "clips": clips,
+                                                      "controller": meta.get("kind"), "termination": task.termination,
+                                                      "termination_distance": task.termination_distance},
+                      inputs={**hash_inputs([motion]), "controller#weights": meta.get("model_sha256")})
+    write_motion(out, "motion", prov, written, skeleton, offsets.astype(np.float32), fps, legacy)
+    ok = [v for v in ordered.values() if "mpjpe_mm" in v]
+    summary = {"output": str(out), "clips": len(names), "written": len(written),
+               "tracked_to_end": float(np.mean([v["tracked_to_end"] for v in ordered.values()])),
+               "mpjpe_mm": float(np.mean([v["mpjpe_mm"] for v in ok])) if ok else float("nan"),
+               "g_mpjpe_mm": float(np.mean([v["g_mpjpe_mm"] for v in ok])) if ok else float("nan")}
+    if render is not None and video is not None:
+        from motok.sim.render import render_trajectory
+        qpos, played = video
+        ghost = lib.qpos[lib.starts[0]:lib.starts[0] + played + 1]
+        path, backend = render_trajectory(hum, qpos[:played + 1], render, hz, ghost=ghost,
+                                          title=f"tracked {lib.names[0]}")
+        summary["video"] = f"{path} ({backend})"
+    return {**summary, "per_clip": ordered}

@@ -1,0 +1,101 @@
+"""Kinematic motion in, simulated motion out (motok.control.track, `motok control track`), with
+plain PD tracking as the controller (an expert whose actions are zero: PD on the reference's
+angles and velocities), so the test needs no training."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from motok.artifacts import Provenance
+from motok.control.expert import ExpertConfig, build_actor_critic, imitation_mdp
+from motok.control.track import from_mj, place_on_floor, track
+from motok.data.dataset import MotionFile, write_motion
+from motok.eval.metrics import mpjpe
+from motok.sim.humanoid import to_mj
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def pd_controller(hum, lib):
+    """(cfg, humanoid, actor-critic, meta) whose policy's mean action is 0 on the reference base."""
+    cfg = ExpertConfig()
+    cfg.action.base, cfg.task.termination, cfg.env.num_envs = "reference", "mean", 8
+    cfg.net.encoder = cfg.net.decoder = cfg.net.value = [16]
+    mdp = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, 0)
+    ac = build_actor_critic(cfg.net, mdp.obs_dim, mdp.goal_dim, mdp.action_dim)
+    with torch.no_grad():
+        ac.policy.decoder[-1].weight.zero_()
+        ac.policy.decoder[-1].bias.zero_()
+    return cfg, hum, ac, {"kind": "control-expert", "model_sha256": "pd"}
+
+
+def test_mj_and_data_frames_are_inverse():
+    v = np.random.default_rng(0).normal(size=(5, 3))
+    assert np.array_equal(from_mj(to_mj(v)), v)
+
+
+def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, small_dataset, tmp_path, monkeypatch):
+    out = tmp_path / "tracked.h5"
+    res = track(pd_controller, small_dataset, out, clips="dataset-2_walk_normal_00[1-3]")
+    assert res["clips"] == res["written"] == 3 and res["tracked_to_end"] == 0.0  # plain PD falls
+    with MotionFile(out, "motion") as sim, MotionFile(small_dataset) as ref:
+        assert sim.fps == ref.fps and list(sim.names) == [f"dataset-2_walk_normal_00{i}" for i in (1, 2, 3)]
+        for name in sim.names:
+            r, s = res["per_clip"][name], sim.clip(name)
+            # the simulated part only, at the motion's rate; features recomputed (12J - 1 per frame)
+            assert abs(s.num_frames - r["seconds"] * sim.fps) <= 2 and s.features.shape[1] == 12 * 21 - 1
+            g = ref.clip(name)
+            assert s.split == g.split and s.captions == g.captions
+            # written joints against the reference over the frames played: close to the error the
+            # tracking measured at the control rate (both root-relative)
+            n = min(s.num_frames, g.num_frames)
+            err = float(mpjpe(s.joints[:n], g.joints[:n]).mean())
+            assert 0.5 * r["mpjpe_mm"] < err < 1.5 * r["mpjpe_mm"] + 10.0, (err, r["mpjpe_mm"])
+            assert abs(r["floor_shift_m"]) < 0.05  # dataset motion already stands on the floor
+    from motok.cli.main import app
+
+    runner = CliRunner()
+    monkeypatch.setenv("MOTOK_CACHE", str(tmp_path / "cache"))
+    for args in (["info", str(out)], ["render", str(out), "--clip", "dataset-2_walk_normal_002", "-o",
+                                        str(tmp_path / "s.gif")],
+                 ["export", "bvh", str(out), "--clip", "dataset-2_walk_normal_002", "-o", str(tmp_path / "s.bvh")]):
+        r = runner.invoke(app, ["--quiet", *args])
+        assert r.exit_code == 0, (args, r.output)
+    assert (tmp_path / "s.gif").exists() and (tmp_path / "s.bvh").stat().st_size > 1000
+
+
+def test_floating_motion_is_placed_on_the_floor_and_short_clips_fail_alone(pd_controller, small_dataset, tmp_path,
+                                                                          lib):
+    """A motion 1 m above the floor is tracked from the floor; a clip too short to track is
+    reported by name and the others are written."""
+    with MotionFile(small_dataset) as mf:
+        a, b = mf.clip("dataset-2_walk_normal_001"), mf.clip("dataset-2_walk_normal_002")
+        skeleton, offsets, fps = mf.skeleton, mf.offsets, mf.fps
+    up = replace(a, name="floating", joints=a.joints + np.array([0.0, 1.0, 0.0], np.float32))
+    tiny = replace(b, name="tiny", features=b.features[:2], joints=b.joints[:2], local_quats=b.local_quats[:2],
+                   root_translation=b.root_translation[:2])
+    src = tmp_path / "gen.h5"
+    write_motion(src, "motion", Provenance(command="test", config={}), [up, tiny, b], skeleton, offsets, fps, False)
+    res = track(pd_controller, src, tmp_path / "out.h5")
+    per = res["per_clip"]
+    assert per["floating"]["floor_shift_m"] == pytest.approx(-1.0, abs=0.03)
+    assert "too short" in per["tiny"]["error"] and res["written"] == 2 and not per["tiny"]["tracked_to_end"]
+    base = track(pd_controller, small_dataset, tmp_path / "ref.h5", clips="dataset-2_walk_normal_001")
+    assert per["floating"]["seconds"] == pytest.approx(base["per_clip"]["dataset-2_walk_normal_001"]["seconds"], abs=0.1)
+    with MotionFile(tmp_path / "out.h5", "motion") as mf:
+        assert list(mf.names) == ["floating", "dataset-2_walk_normal_002"]
+    placed, shift = place_on_floor(lib)
+    assert np.allclose([placed.lowest[s:e].min() for s, e in zip(placed.starts[:-1], placed.starts[1:])], 0.002)
+    assert np.allclose(placed.qpos[:, 2] - lib.qpos[:, 2], np.repeat(shift, lib.lengths))
+    with pytest.raises(ValueError, match="no clip is long enough"):
+        write_motion(tmp_path / "t.h5", "motion", Provenance(command="test", config={}), [tiny], skeleton, offsets, fps, False)
+        track(pd_controller, tmp_path / "t.h5", tmp_path / "none.h5")
+    assert not (tmp_path / "none.h5").exists()
+    json.dumps(res)  # results are plain JSON

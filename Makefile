@@ -26,12 +26,12 @@ test: install
 demo: install
 	$(BIN)/motok preprocess --recipe recipes/preprocess/bandai2.yaml -o $(DEMO)/bandai2.h5
 	$(BIN)/motok info $(DEMO)/bandai2.h5 --captions 2
-	$(BIN)/motok render $(DEMO)/bandai2.h5 --clip dataset-2_walk_normal_001 -o $(DEMO)/walk_normal_001.gif
-	$(BIN)/motok render $(DEMO)/bandai2.h5 --clip dataset-2_raise-up-both-hands_exhausted_001 -o $(DEMO)/raise_up_exhausted_001.mp4
-	$(BIN)/motok export bvh $(DEMO)/bandai2.h5 --clip dataset-2_walk_normal_001 -o $(DEMO)/walk_normal_001.bvh
+	$(BIN)/motok render -d $(DEMO)/bandai2.h5 --clip dataset-2_walk_normal_001 -o $(DEMO)/walk_normal_001.gif
+	$(BIN)/motok render -d $(DEMO)/bandai2.h5 --clip dataset-2_raise-up-both-hands_exhausted_001 -o $(DEMO)/raise_up_exhausted_001.mp4
+	$(BIN)/motok export bvh -d $(DEMO)/bandai2.h5 --clip dataset-2_walk_normal_001 -o $(DEMO)/walk_normal_001.bvh
 	$(BIN)/motok tokenize train --data $(DEMO)/bandai2.h5 --recipe recipes/tokenizer/demo.yaml -o $(DEMO)/tokenizer
 	$(BIN)/motok tokenize encode --tokenizer $(DEMO)/tokenizer --data $(DEMO)/bandai2.h5 -o $(DEMO)/tokens.h5
-	$(BIN)/motok gpt train --tokens $(DEMO)/tokens.h5 --recipe recipes/gpt/demo.yaml -o $(DEMO)/gpt
+	$(BIN)/motok gpt train -d $(DEMO)/tokens.h5 --recipe recipes/gpt/demo.yaml -o $(DEMO)/gpt
 	OMP_NUM_THREADS=1 $(BIN)/motok gpt sample --gpt $(DEMO)/gpt --text "a person walks forward" --seed 0 \
 		-o $(DEMO)/walk_generated.h5 --render $(DEMO)/walk_generated.gif --bvh $(DEMO)/walk_generated.bvh
 	$(BIN)/motok plot $(DEMO)/tokenizer

@@ -137,7 +137,16 @@ def open_artifact(path: str | os.PathLike, kind: str | tuple[str, ...] | None = 
 
 
 def provenance_of(f: h5py.File) -> Provenance:
-    return Provenance.from_json(f.attrs["provenance"])
+    """The provenance record of an open artifact; a clear error when it is missing or damaged
+    (a file made by another tool that copied the ``kind`` attribute, or edited by hand)."""
+    raw = f.attrs.get("provenance")
+    if raw is None:
+        raise ArtifactError(f"{f.filename}: a {f.attrs.get('kind')} artifact without a provenance attribute "
+                            f"(not written by motok, or stripped)")
+    try:
+        return Provenance.from_json(raw.decode() if isinstance(raw, bytes) else str(raw))
+    except (ValueError, TypeError) as e:
+        raise ArtifactError(f"{f.filename}: the provenance attribute is not a motok provenance record ({e})") from None
 
 
 def write_strings(group: h5py.Group, name: str, values) -> None:

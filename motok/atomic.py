@@ -4,18 +4,74 @@ Every writer in motok (HDF5 artifacts, checkpoint bundles, videos, plots, BVH, c
 through :func:`atomic_path`: it writes a temporary sibling and renames it over the target only
 when the block succeeds, so a reader never sees a half-written file and a crash or Ctrl-C
 leaves none behind (``os.replace`` is atomic within one directory).
+
+A writer killed outright (``kill -9``, the OOM killer, a power cut) cannot remove its temporary
+file. The name says whose it was, ``.STEM.HOST.PID.RANDOM.partSUFFIX``, so the next writer of
+the same target removes the ones whose process is gone from this machine; files of writers on
+other machines sharing the folder are left to those machines.
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
+import re
+import socket
+import tempfile
 import uuid
 from pathlib import Path
 from typing import Iterator
 
+from motok.errors import UserError
+
 _UMASK = os.umask(0o022)  # read it the only way there is: set and restore
 os.umask(_UMASK)
+# Dots separate the fields of a temporary name, so the host part may not contain any.
+_HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:32] or "host"
+
+
+class OutputError(UserError, OSError):
+    """An output path that cannot be written: a folder where a file goes, no permission, ..."""
+
+
+def temp_name(path: Path) -> str:
+    return f".{path.stem}.{_HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part{path.suffix}"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def stale_temp_files(path: str | os.PathLike) -> list[Path]:
+    """Temporary files of writers of ``path`` on this machine whose process no longer exists."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    # The host field is absent in names written before it was added (same machine assumed).
+    name = re.compile(rf"^\.{re.escape(path.stem)}\.(?:(?P<host>[A-Za-z0-9-]+)\.)?(?P<pid>\d+)\.[0-9a-f]{{8}}"
+                      rf"\.part{re.escape(path.suffix)}$")
+    out = []
+    for p in path.parent.glob(f".{glob.escape(path.stem)}.*.part{glob.escape(path.suffix)}"):
+        m = name.match(p.name)
+        if m and m["host"] in (None, _HOST) and int(m["pid"]) != os.getpid() and not _alive(int(m["pid"])):
+            out.append(p)
+    return out
+
+
+def remove_stale_temp_files(path: str | os.PathLike) -> list[Path]:
+    removed = []
+    for p in stale_temp_files(path):
+        with contextlib.suppress(OSError):  # another writer may be cleaning up the same file
+            p.unlink()
+            removed.append(p)
+    return removed
 
 
 @contextlib.contextmanager
@@ -30,10 +86,39 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part{path.suffix}")
+    remove_stale_temp_files(path)
+    tmp = path.with_name(temp_name(path))
     try:
         yield tmp
         os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def check_writable(path: str | os.PathLike, *, folder: bool = False, suffixes: tuple[str, ...] = (),
+                   what: str = "output") -> Path:
+    """Fail now, before any work, if ``path`` cannot be written: a file output that is a folder
+    (or a run folder that is a file), a suffix the writer cannot produce, a parent that is a
+    file or not writable. Creates nothing."""
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise OutputError(f"{what} {path} is a file; a run folder goes there")
+    if not folder and path.is_dir():
+        raise OutputError(f"{what} {path} is a folder; give a file name inside it")
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise OutputError(f"{what} {path}: unknown suffix {path.suffix or '(none)'!r}; use one of "
+                          f"{', '.join(suffixes)}")
+    # The nearest existing ancestor must be a writable folder: the writer creates the rest.
+    parent = path if folder else path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"{what} {path}: {parent} is a file, not a folder")
+    # Try it: permission bits say nothing for root, read-only mounts or /proc.
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise OutputError(f"{what} {path}: cannot write in {parent} ({e.strerror or e})") from None
+    return path

@@ -11,13 +11,22 @@ RUN/
 ```
 
 Writes go to temporary names and are renamed into place, model first and ``bundle.json``
-last, so a bundle whose ``bundle.json`` exists is complete.
+last, so a bundle whose ``bundle.json`` exists is complete. Loading checks the weights against
+``model_sha256``: a bundle whose weights were replaced or damaged refuses to load instead of
+producing plausible-looking nonsense.
+
+A bundle that points at other files (a GPT at its tokenizer, tokens and text cache; a run at
+its dataset) passes them to :func:`save_bundle` as ``Path`` values in ``extra``. They are stored
+relative to the bundle folder, so a tree of runs works from any directory and after being moved
+as a whole, and listed under ``refs``; :func:`bundle_ref` resolves them (and the paths of older
+bundles, which were relative to the directory they were trained in).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import random
 from pathlib import Path
 from typing import Any
@@ -28,7 +37,7 @@ from safetensors.torch import load_file, save_file
 
 from motok.artifacts import Provenance
 from motok.atomic import atomic_path
-from motok.errors import MotokError
+from motok.errors import MissingFileError, MotokError
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
 
@@ -78,9 +87,13 @@ def save_bundle(run: str | Path, kind: str, model_state: dict[str, torch.Tensor]
     if train_state is not None:
         with atomic_path(run / "train_state.pt") as tmp:
             torch.save(train_state, tmp)
+    extra = dict(extra or {})
+    refs = sorted(k for k, v in extra.items() if isinstance(v, os.PathLike))
+    for k in refs:
+        extra[k] = relative_to(extra[k], run)
     meta = {
         "kind": kind, "schema_version": schema_version, "provenance": json.loads(provenance.to_json()),
-        "config": config, "extra": extra or {}, "model_sha256": sha256_state(tensors),
+        "config": config, "extra": extra, "refs": refs, "model_sha256": sha256_state(tensors),
     }
     with atomic_path(run / "bundle.json") as tmp:
         tmp.write_text(json.dumps(meta, indent=2, default=str))
@@ -95,30 +108,108 @@ def sha256_state(tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def load_bundle(run: str | Path, kind: str | None = None, with_train_state: bool = False):
-    """Returns ``(meta, model_state, train_state_or_None)``; refuses wrong kinds and versions."""
+def read_meta(run: str | Path, kind: str | None = None) -> dict:
+    """``bundle.json`` of ``run``, checked for kind and version (the weights are not read)."""
     run = Path(run)
     meta_path = run / "bundle.json"
-    if not meta_path.exists():
+    if not run.exists():
+        raise MissingFileError(f"{run}: no such checkpoint bundle (the folder does not exist)")
+    if not meta_path.is_file():
         raise CheckpointError(f"{run}: not a motok checkpoint bundle (no bundle.json)")
     try:
         meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CheckpointError(f"{meta_path}: not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{meta_path}: not a bundle description (a JSON object is expected)")
     found, version = meta.get("kind"), meta.get("schema_version")
     if kind is not None and found != kind:
         raise CheckpointError(f"{run}: expected a {kind} bundle, found kind {found!r}")
     if found in BUNDLE_KINDS and version not in BUNDLE_KINDS[found]:
         raise CheckpointError(f"{run}: {found} bundle schema version {version} is not supported "
                               f"(supported: {list(BUNDLE_KINDS[found])})")
-    state = load_file(str(run / "model.safetensors"))
+    return meta
+
+
+def read_weights(run: str | Path, meta: dict, verify: bool = True) -> dict[str, torch.Tensor]:
+    """The tensors of ``run/model.safetensors``; with ``verify``, checked against the bundle's
+    ``model_sha256`` (weights replaced, zeroed or damaged after training are refused)."""
+    run = Path(run)
+    path = run / "model.safetensors"
+    if not path.is_file():
+        raise CheckpointError(f"{run}: the bundle has no model.safetensors")
+    try:
+        state = load_file(str(path))
+    except Exception as e:  # safetensors raises its own error types (and OSError) for damaged files
+        raise CheckpointError(f"{path}: unreadable weights, the file is truncated or corrupted "
+                              f"({type(e).__name__}: {e})") from None
+    if verify:
+        want = meta.get("model_sha256")
+        if not want:
+            raise CheckpointError(f"{run}: bundle.json records no model_sha256 to check the weights against")
+        got = sha256_state(state)
+        if got != want:
+            raise CheckpointError(f"{run}: model.safetensors does not match the bundle (sha256 {got[:12]}, "
+                                  f"bundle.json records {want[:12]}): the weights were changed or damaged "
+                                  f"after training")
+    return state
+
+
+def load_bundle(run: str | Path, kind: str | None = None, with_train_state: bool = False):
+    """Returns ``(meta, model_state, train_state_or_None)``; refuses wrong kinds and versions and
+    weights that do not match ``model_sha256``."""
+    run = Path(run)
+    meta = read_meta(run, kind)
+    state = read_weights(run, meta)
     train_state = None
     if with_train_state:
         p = run / "train_state.pt"
         if not p.exists():
             raise CheckpointError(f"{run}: no train_state.pt to resume from")
-        train_state = torch.load(p, weights_only=True)
+        try:
+            train_state = torch.load(p, weights_only=True)
+        except Exception as e:  # pickle, zip and torch errors alike mean a damaged file here
+            raise CheckpointError(f"{p}: unreadable training state, the file is truncated or corrupted "
+                                  f"({type(e).__name__}: {e})") from None
     return meta, state, train_state
+
+
+# --------------------------------------------------------------------------- references
+
+def relative_to(path: str | os.PathLike, folder: str | os.PathLike) -> str:
+    """``path`` as seen from ``folder`` (both made absolute first), with forward slashes."""
+    return Path(os.path.relpath(os.path.abspath(path), os.path.abspath(folder))).as_posix()
+
+
+def resolve_ref(value: str | os.PathLike, base: str | os.PathLike) -> list[Path]:
+    """Where a stored path may point, most likely first: relative to ``base`` (how motok writes
+    them), then as written, then under each folder above ``base``: older files stored paths
+    relative to the directory they were made in, which was usually one of those folders."""
+    p = Path(value)
+    if p.is_absolute():
+        return [p]
+    places = [Path(os.path.normpath(Path(base) / p)), p]
+    if not p.parts or p.parts[0] != "..":
+        places += [q / p for q in Path(os.path.abspath(base)).parents]
+    return list(dict.fromkeys(places))
+
+
+def bundle_ref(run: str | Path, meta: dict, key: str, *, required: bool = True, hint: str = "") -> Path | None:
+    """The file ``meta["extra"][key]`` of the bundle ``run`` refers to. Missing: ``None`` when not
+    ``required``, else an error naming the bundle, the reference and where it was looked for."""
+    value = meta.get("extra", {}).get(key)
+    if not value:
+        if required:
+            raise CheckpointError(f"{run}: bundle.json records no {key}{hint}")
+        return None
+    places = resolve_ref(value, run)
+    for p in places:
+        if p.exists():
+            return p
+    if not required:
+        return None
+    raise MissingFileError(f"{run}: its {key} {value!r} does not exist (looked for {places[0]}"
+                           f"{' and ' + str(places[1]) if len(places) > 1 else ''}){hint}")
 
 
 class MetricsLog:

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from typer.testing import CliRunner
 
 from motok.eval import metrics as M
@@ -326,10 +325,10 @@ def test_cli_t2m_fid_alias_recon_and_physical(tiny_evaluator, labelled_dataset, 
     rep = json.loads(r.output)
     assert [x["name"] for x in rep["rows"]] == ["real motion", "gen"] and (tmp_path / "t.md").exists()
     r = runner.invoke(app, ["eval", "physical", str(gen), "--json"])
-    assert r.exit_code == 0 and json.loads(r.output)["clips"] == 38
-    assert json.loads(r.output)["skate_cm_s"] == pytest.approx(rep["rows"][1]["physical"]["skate_cm_s"])
+    assert r.exit_code == 0 and json.loads(r.stdout)["clips"] == 38
+    assert json.loads(r.stdout)["skate_cm_s"] == pytest.approx(rep["rows"][1]["physical"]["skate_cm_s"])
     r = runner.invoke(app, ["eval", "recon", "--data", str(labelled_dataset), "-m", str(gen), "--json"])
-    assert r.exit_code == 0 and json.loads(r.output)["mpjpe_mm"] > 0
+    assert r.exit_code == 0 and json.loads(r.stdout)["mpjpe_mm"] > 0
     bad = runner.invoke(app, ["eval", "t2m", "-e", str(tmp_path / "nope"), "--data", str(labelled_dataset)])
     assert bad.exit_code == 2 and "bundle" in bad.output
     bad = runner.invoke(app, ["eval", "train-evaluator", "--data", str(labelled_dataset), "-o", str(tmp_path / "e"),

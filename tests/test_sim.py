@@ -10,7 +10,6 @@ import mujoco
 
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import HumanoidError, load_humanoid, to_mj
-from motok.sim.mjcf import build_humanoid
 from motok.sim.obs import TreeKinematics, observation
 from motok.sim.reference import ReferenceError, body_states, build_library, load_library
 

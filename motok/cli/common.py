@@ -14,12 +14,17 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import typer
+from rich.console import Console
 
 from motok import progress
 from motok.errors import MotokError
 
-__all__ = ["DataRoot", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "existing", "fail", "input_option",
-           "print_json", "recipe_option", "report", "run"]
+__all__ = ["DataRoot", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "data_option", "existing", "fail",
+           "input_option", "output_option", "print_json", "recipe_option", "report", "results", "run", "wrote"]
+
+# Results (tables, JSON, what was written) go to stdout; progress, notes and errors to stderr
+# (motok.progress.console), so `motok ... --json | jq` and `> log` both work.
+results = Console()
 
 
 # --------------------------------------------------------------------------- errors
@@ -59,6 +64,17 @@ def print_json(obj) -> None:
     typer.echo(json.dumps(obj, indent=2, default=str))
 
 
+def wrote(summary: dict, as_json: bool, *paths) -> None:
+    """The result of a command that writes files: ``summary`` as JSON, or one ``wrote PATH`` line
+    per file, unwrapped so it can be copied whatever the terminal width."""
+    if as_json:
+        print_json(summary)
+        return
+    from rich.markup import escape
+    for p in paths or [summary["output"]]:
+        results.print(f"wrote {escape(str(p))}", soft_wrap=True, highlight=False)
+
+
 def cell(v) -> str:
     """One table cell: floats to 4 significant digits, mappings as ``k=v``, sequences comma-joined."""
     if isinstance(v, bool):
@@ -75,7 +91,7 @@ def cell(v) -> str:
 def report(summary: dict, as_json: bool, title: str, *, hide=(),
            cells: Mapping[str, Callable[[Any], str]] | None = None) -> None:
     """A stage's summary: the whole dict as JSON with ``--json``, else a two-column table on
-    stderr without the keys in ``hide``; ``cells`` formats chosen keys its own way."""
+    stdout without the keys in ``hide``; ``cells`` formats chosen keys its own way."""
     if as_json:
         print_json(summary)
         return
@@ -85,7 +101,7 @@ def report(summary: dict, as_json: bool, title: str, *, hide=(),
     for k, v in summary.items():
         if k not in hide:
             t.add_row(escape(str(k)), escape((cells or {}).get(k, cell)(v)))
-    progress.console.print(t)
+    results.print(t)
 
 
 # --------------------------------------------------------------------------- environment
@@ -104,12 +120,43 @@ def recipe_option(folder: str = "recipes/"):
     return typer.Option(None, "--recipe", help=f"YAML recipe ({folder}).")
 
 
-def input_option(*names: str, help: str):
-    """A required input file option (``--data``, ``--tokens``) checked by :func:`existing`."""
-    return typer.Option(..., *names, help=help, callback=existing)
+def input_option(*names: str, help: str, required: bool = True):
+    """An input file option checked by :func:`existing` (required unless ``required=False``)."""
+    return typer.Option(... if required else None, *names, help=help, callback=existing)
+
+
+def data_option(help: str, required: bool = True):
+    """The main input of a command, ``--data``/``-d`` everywhere (motok.cli.conventions)."""
+    return input_option("--data", "-d", help=help, required=required)
+
+
+def _writable(folder: bool, suffixes: tuple[str, ...]):
+    def check(ctx: typer.Context, param, value):
+        if ctx.resilient_parsing or value is None:
+            return value
+        from motok.atomic import OutputError, check_writable
+        opts = [o for o in getattr(param, "opts", []) if o.startswith("-")]
+        label = "/".join(sorted(opts, key=len)) or param.name
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            try:
+                check_writable(v, folder=folder, suffixes=suffixes, what=label)
+            except OutputError as e:
+                fail(str(e))
+        return value
+    return check
+
+
+def output_option(*names: str, help: str, folder: bool = False, suffixes: tuple[str, ...] = (),
+                  required: bool = True, default=None):
+    """An output path (``-o``/``--out`` unless ``names`` says otherwise), checked at parse time,
+    before any work: not a folder where a file goes (or a file where a run folder goes), a
+    suffix the writer knows, a place that can be written."""
+    names = names or ("--out", "-o")
+    return typer.Option(... if required else default, *names, help=help, callback=_writable(folder, suffixes))
 
 
 DataRoot = typer.Option(None, "--data-root", help="Data folder (else $MOTOK_DATA, else ../shared/datasets).")
-Sets = typer.Option([], "--set", help="Override a config key: --set key=value (repeatable).")
+Sets = typer.Option([], "--set", metavar="KEY=VALUE", help="Override a config key: --set key=value (repeatable).")
 Resume = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped.")
-JsonOut = typer.Option(False, "--json", help="Print the result as JSON.")
+H5 = (".h5", ".hdf5")  # HDF5 artifacts: a .gif here would be an HDF5 file named like a video
+JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")

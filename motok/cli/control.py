@@ -9,27 +9,36 @@ from typing import Optional
 
 import typer
 
-from motok import progress as _progress
-from motok.cli.common import Resume, input_option, print_json, recipe_option, report, run
+from motok.cli.common import (Resume, data_option, existing, output_option, print_json, recipe_option, report, results,
+                              run)
+from motok.cli.conventions import examples, renamed
+
+JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
 
 app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP).", no_args_is_help=True)
 expert_app = typer.Typer(help="The hybrid-latent paper's expert policy (appendix B.2).", no_args_is_help=True)
 app.add_typer(expert_app, name="expert")
 
 
-@expert_app.command("train")
+@expert_app.command("train", epilog=examples(
+    "motok control expert train -d runs/bandai2.h5 --clips 'dataset-2_walk_normal*' "
+    "--recipe recipes/control/expert.yaml -o runs/expert",
+    "motok control expert train -d runs/bandai2.h5 -o runs/expert --resume --until 2000"))
 def train_cmd(
-    data: Path = input_option("--data", help="A motion-dataset artifact (.h5)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle, metrics.jsonl)."),
-    clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob, e.g. 'dataset-2_walk_normal*'."),
+    data: Path = data_option("A motion-dataset artifact (.h5)."),
+    out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB",
+                                        help="Clip-name glob, e.g. 'dataset-2_walk_normal*'."),
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
     recipe: Optional[Path] = recipe_option("recipes/control/"),
-    sets: list[str] = typer.Option([], "--set", help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
-    humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached)."),
+    sets: list[str] = typer.Option([], "--set", metavar="KEY=VALUE",
+                                   help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
+    humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached).",
+                                            callback=existing),
     resume: bool = Resume,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the LR schedule still "
                                         "spans the recipe's iterations; --resume continues)."),
-    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    as_json: bool = JsonOut,
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
     from motok.config import load_config
@@ -41,18 +50,24 @@ def train_cmd(
     report(summary, as_json, "control expert train")
 
 
-@expert_app.command("eval")
+@expert_app.command("eval", epilog=examples(
+    "motok control expert eval --expert runs/expert --render expert.mp4",
+    "motok control expert eval --expert runs/expert -d runs/bandai2.h5 --split test --json"))
+@renamed(run="--expert")
 def eval_cmd(
-    run_dir: Path = typer.Option(..., "--run", help="A control-expert run folder."),
-    data: Optional[Path] = typer.Option(None, "--data", help="Dataset (default: the one it was trained on)."),
-    clips: Optional[str] = typer.Option(None, "--clips", help="Clip-name glob (default: the training clips)."),
+    run_dir: Path = typer.Option(..., "--expert", help="A control-expert run folder (from `control expert train`).",
+                                 callback=existing),
+    data: Optional[Path] = data_option("Dataset (default: the one it was trained on).", required=False),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB",
+                                        help="Clip-name glob (default: the training clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test) of the "
                                         "dataset, with a table per content and per style."),
-    render: Optional[Path] = typer.Option(None, "--render", help="Video of the first clip (.mp4/.gif)."),
+    render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
+                                           suffixes=(".mp4", ".gif"), required=False),
     termination: Optional[str] = typer.Option(None, "--termination",
                                               help="Failure test: 'any' body or the 'mean' (default: the run's)."),
     distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the run's)."),
-    as_json: bool = typer.Option(False, "--json", help="Print the full results as JSON."),
+    as_json: bool = JsonOut,
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
     from motok.control.expert import evaluate_run
@@ -77,7 +92,7 @@ def eval_cmd(
             for g, r in groups[kind].items():
                 t.add_row(g, str(r["clips"]), f"{r['success_rate']:.0%}", f"{r['seconds_played']:.0f}",
                           *[f"{r[c]:.1f}" for c in list(cols)[2:]])
-            _progress.console.print(t)
+            results.print(t)
         _summary_line(res)
         return
     # Clip names share a long prefix (dataset-2_walk_normal_...): print it once, in the header.
@@ -94,14 +109,21 @@ def eval_cmd(
     o = res["overall"]
     t.add_row("[bold]overall", f"{o['success_rate']:.0%}", f"{o['seconds_played']:.1f}",
               *[f"{o[c]:.1f}" for c in list(cols)[2:]])
-    _progress.console.print(t)
+    results.print(t)
     _summary_line(res)
 
 
 def _summary_line(res: dict) -> None:
     o = res["overall"]
-    _progress.info(f"{o['clips']} clips, {o['success_rate']:.1%} played to the end ({o['termination']} ends a "
+    results.print(f"{o['clips']} clips, {o['success_rate']:.1%} played to the end ({o['termination']} ends a "
                    f"clip); {o['success_rate_any_body']:.1%} also kept every single body within that distance; "
                    f"MPJPE {o['mpjpe_mm']:.1f} mm, G-MPJPE {o['g_mpjpe_mm']:.1f} mm")
     if "video" in res:
-        _progress.info(f"wrote {res['video']}")
+        results.print(f"wrote {res['video']}", soft_wrap=True, highlight=False)
+
+
+from motok.cli.priors import register  # noqa: E402  (motok control distill)
+register(app)
+
+from motok.cli.track import register as register_track  # noqa: E402  (motok control track)
+register_track(app)

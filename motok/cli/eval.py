@@ -8,7 +8,9 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, Sets, existing, input_option, print_json, recipe_option, report, run
+from motok.cli.common import (H5, JsonOut, Sets, data_option, existing, fail, output_option, print_json,
+                              recipe_option, report, results, run)
+from motok.cli.conventions import examples, renamed
 
 app = typer.Typer(help="Evaluation: train a text-motion evaluator, the T2M metrics, reconstruction and "
                        "physical plausibility.", no_args_is_help=True)
@@ -16,10 +18,12 @@ app = typer.Typer(help="Evaluation: train a text-motion evaluator, the T2M metri
 Recipe = recipe_option("recipes/eval/")
 
 
-@app.command("train-evaluator")
+@app.command("train-evaluator", epilog=examples(
+    "motok eval train-evaluator -d runs/bandai2.h5 -o runs/evaluator",
+    "motok eval train-evaluator -d runs/bandai2.h5 --recipe recipes/eval/evaluator_bow.yaml -o /tmp/ev"))
 def train_evaluator(
-    data: Path = input_option("--data", help="A motion-dataset with captions (.h5)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle + metrics.jsonl)."),
+    data: Path = data_option("A motion-dataset with captions (.h5)."),
+    out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),
     recipe: Optional[Path] = Recipe, sets: list[str] = Sets, as_json: bool = JsonOut,
 ):
     """Train the contrastive text-motion co-embedding; reports retrieval on the test split vs chance."""
@@ -29,53 +33,66 @@ def train_evaluator(
     report(run(_train, cfg, data, out), as_json, "eval train-evaluator")
 
 
+# -m meant --motions here and --num-codebooks in `tokenize`: it keeps its old meaning here, hidden,
+# for one release; after that it is --num-codebooks everywhere.
+@renamed(out_json="--out", out_md="--out", m="--motions")
 def _t2m_command(
     evaluator: Path = typer.Option(..., "--evaluator", "-e", help="An evaluator run (from `eval train-evaluator`)."),
-    data: Path = input_option("--data", help="The motion-dataset (real motion of --split)."),
+    data: Path = data_option("The motion-dataset (real motion of --split)."),
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Add the reconstruction row; "
                                              "with --gpt, the tokenizer that decodes its codes."),
-    gpt: Optional[Path] = typer.Option(None, "--gpt", help="Add a generation row sampled from this GPT run."),
-    motions: list[Path] = typer.Option([], "--motions", "-m", help="Add a row for any motion artifact (repeatable).",
-                                       callback=existing),
+    gpt: Optional[Path] = typer.Option(None, "--gpt", "-g", help="Add a generation row sampled from this GPT run."),
+    motions: list[Path] = typer.Option([], "--motions", metavar="PATH",
+                                       help="Add a row for any motion artifact (repeatable).", callback=existing),
     gt_length: bool = typer.Option(False, "--gt-length", help="Generate at the ground-truth length, not until End."),
     split: Optional[str] = typer.Option(None, "--split", help="Split of --data (default test)."),
     repeats: Optional[int] = typer.Option(None, "--repeats", help="Repeats (default 20)."),
     no_real: bool = typer.Option(False, "--no-real", help="Skip the real-motion row."),
-    save_generated: Optional[Path] = typer.Option(None, "--save-generated", help="Keep the --gpt samples here (.h5)."),
-    out_json: Optional[Path] = typer.Option(None, "--out-json", help="Write the full report (JSON)."),
-    out_md: Optional[Path] = typer.Option(None, "--out-md", help="Write the Markdown table."),
+    save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples here (.h5).",
+                                                   suffixes=H5, required=False),
+    outs: list[Path] = output_option(help="Write the report: the full report to a .json, the table to a .md "
+                                     "(repeatable).", suffixes=(".json", ".md"), required=False, default=[]),
     recipe: Optional[Path] = Recipe, sets: list[str] = Sets, as_json: bool = JsonOut,
 ):
     """R-precision, FID, MM-Dist, Diversity, MModality (mean ± 95% CI over 20 repeats) and physical metrics."""
     from motok.config import load_config
     from motok.eval.report import T2MConfig, rich_table, save_report, t2m
-    from motok.progress import console
+    out_json = [p for p in outs if p.suffix.lower() == ".json"]
+    out_md = [p for p in outs if p.suffix.lower() == ".md"]
+    if len(out_json) > 1 or len(out_md) > 1:
+        fail("-o takes at most one .json and one .md")
     flags = {"split": split, "repeats": repeats}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["gt_length=true"] * gt_length
     cfg = run(load_config, T2MConfig, recipe, overrides)
     rep = run(t2m, evaluator, data, cfg, tokenizer=tokenizer, gpt=gpt, motions=motions,
               save_generated=save_generated, real=not no_real)
-    save_report(rep, out_json, out_md)
+    save_report(rep, (out_json or [None])[0], (out_md or [None])[0])
     if as_json:
         print_json(rep)
     else:
-        console.print(rich_table(rep))
-        console.print(f"{rep['seconds']} s; evaluator {rep['evaluator']}")
+        results.print(rich_table(rep))
+        results.print(f"{rep['seconds']} s; evaluator {rep['evaluator']}")
 
 
-app.command("t2m")(_t2m_command)
-app.command("fid", help="Alias of `t2m`.")(_t2m_command)
+_T2M_EXAMPLES = examples(
+    "motok eval t2m -e runs/evaluator -d runs/bandai2.h5 -t runs/tok -g runs/gpt -o t2m.json -o t2m.md",
+    "motok eval t2m -e runs/evaluator -d runs/bandai2.h5 --motions walk_generated.h5 --repeats 5")
+app.command("t2m", epilog=_T2M_EXAMPLES)(_t2m_command)
+app.command("fid", help="Alias of `t2m`.", epilog=_T2M_EXAMPLES)(_t2m_command)
 
 
-@app.command()
+@app.command(epilog=examples("motok eval recon -d runs/bandai2.h5 -t runs/tok --split test",
+                             "motok eval recon -d runs/bandai2.h5 --motions recon.h5 --json"))
+@renamed(m="--motions")
 def recon(
-    data: Path = input_option("--data", help="The motion-dataset the reconstruction is compared with."),
+    data: Path = data_option("The motion-dataset the reconstruction is compared with."),
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Reconstruct the split through it."),
-    motions: Optional[Path] = typer.Option(None, "--motions", "-m", help="A reconstruction artifact (clips named "
+    motions: Optional[Path] = typer.Option(None, "--motions", help="A reconstruction artifact (clips named "
                                            "as in --data, e.g. from `tokenize decode`).", callback=existing),
-    split: str = typer.Option("test", "--split"),
-    num_codebooks: Optional[int] = typer.Option(None, "--num-codebooks"),
+    split: str = typer.Option("test", "--split", help="The split of --data to compare (train, val, test)."),
+    num_codebooks: Optional[int] = typer.Option(None, "--num-codebooks",
+                                                help="With --tokenizer: use only the first M codebooks."),
     as_json: bool = JsonOut,
 ):
     """MPJPE (mm, root-relative and global) and acceleration error of a reconstruction."""
@@ -83,9 +100,11 @@ def recon(
     report(run(_recon, data, split, tokenizer, motions, num_codebooks), as_json, f"eval recon ({split})")
 
 
-@app.command()
+@app.command(epilog=examples("motok eval physical -d walk_generated.h5", "motok eval physical -d runs/bandai2.h5 "
+                             "--split test --json"))
+@renamed(positional="--data")
 def physical(
-    motion: Path = typer.Argument(..., help="Any motion or motion-dataset artifact.", callback=existing),
+    motion: Path = data_option("Any motion or motion-dataset artifact."),
     split: Optional[str] = typer.Option(None, "--split", help="Only this split (datasets)."),
     contact_tolerance: Optional[float] = typer.Option(None, "--contact-tolerance",
                                                       help="m: a toe this close to its resting height is in contact "
@@ -96,5 +115,6 @@ def physical(
 ):
     """Foot skating, ground penetration, floating and jitter of every clip (frame-weighted)."""
     from motok.eval.physical import artifact_physical
-    kw = {k: v for k, v in {"contact_tolerance": contact_tolerance, "skate_speed": skate_speed}.items() if v is not None}
+    kw = {k: v for k, v in {"contact_tolerance": contact_tolerance, "skate_speed": skate_speed}.items()
+          if v is not None}
     report(run(artifact_physical, motion, split, **kw), as_json, "eval physical")

@@ -8,30 +8,36 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, Resume, Sets, existing, input_option, recipe_option, report, run
+from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, existing, fail, output_option, recipe_option,
+                              report, results, run)
+from motok.cli.conventions import examples, renamed
 
 app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes): train, sample.",
                   no_args_is_help=True)
+
+RENDER_SUFFIXES = (".gif", ".mp4", ".png")
 
 
 def _report(summary: dict, as_json: bool, title: str):
     files = [summary["output"]] if "names" in summary else []
     files += summary.get("render", []) + summary.get("bvh", [])
-    report(summary, as_json, title, hide=("render", "bvh", "names") + (("output",) if files else ()))
+    report(summary, as_json, title, hide=("render", "bvh", "names", "truncated") + (("output",) if files else ()))
     if as_json:
         return
     from rich.markup import escape
 
-    from motok.progress import console
     # Paths unwrapped, one per line, so they can be copied whatever the terminal width.
     for f in files:
-        console.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)
+        results.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)
 
 
-@app.command()
+@app.command(epilog=examples(
+    "motok gpt train -d runs/tokens.h5 --recipe recipes/gpt/default.yaml -o runs/gpt",
+    "torchrun --nproc_per_node 2 --no-python motok gpt train -d runs/tokens.h5 -o runs/gpt"))
+@renamed(tokens="--data")
 def train(
-    tokens: Path = input_option("--tokens", help="A tokens artifact (from `tokenize encode`) with captions."),
-    out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle + metrics.jsonl)."),
+    tokens: Path = data_option("A tokens artifact (from `tokenize encode`) with captions."),
+    out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/gpt/"), sets: list[str] = Sets,
     resume: bool = Resume, as_json: bool = JsonOut,
 ):
@@ -44,22 +50,33 @@ def train(
         _report(summary, as_json, "gpt train")
 
 
-@app.command()
+@app.command(epilog=examples(
+    'motok gpt sample -g runs/gpt --text "a person walks forward" -n 4 -o walk.h5 --render walk.gif --bvh walk.bvh',
+    'motok gpt sample -g runs/gpt --texts-file prompts.txt --seconds 4 --top-k 20 -o prompts.h5 --json'))
 def sample(
-    gpt: Path = typer.Option(..., "--gpt", help="A GPT run folder (from `gpt train`)."),
-    text: list[str] = typer.Option([], "--text", help="A sentence (repeatable)."),
-    texts_file: Optional[Path] = typer.Option(None, "--texts-file", help="One sentence per line.", callback=existing),
-    num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per text."),
+    gpt: Path = typer.Option(..., "--gpt", "-g", help="A GPT run folder (from `gpt train`)."),
+    text: list[str] = typer.Option([], "--text", metavar="TEXT",
+                                   help="A sentence (repeatable); empty ones are refused."),
+    texts_file: Optional[Path] = typer.Option(None, "--texts-file", help="One sentence per line (blank lines are "
+                                              "skipped).", callback=existing),
+    num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per text, >= 1."),
     seed: int = typer.Option(0, "--seed", help="Sample j uses seed + j."),
-    temperature: float = typer.Option(1.0, "--temperature"),
-    top_k: Optional[int] = typer.Option(None, "--top-k", help="Keep the k most likely codes."),
-    top_p: Optional[float] = typer.Option(None, "--top-p", help="Nucleus: keep the codes holding p of the mass."),
+    temperature: float = typer.Option(1.0, "--temperature", help="Softmax temperature, > 0."),
+    top_k: Optional[int] = typer.Option(None, "--top-k", help="Keep the k most likely codes (1 to the codebook "
+                                        "size)."),
+    top_p: Optional[float] = typer.Option(None, "--top-p", help="Nucleus: keep the codes holding p of the mass, "
+                                          "p in (0, 1]."),
     argmax: bool = typer.Option(False, "--argmax", help="Greedy: the most likely code at each step."),
-    seconds: Optional[float] = typer.Option(None, "--seconds", help="Target length: End masked before, forced at."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output motion artifact (.h5)."),
-    render: Optional[Path] = typer.Option(None, "--render", help="Also render OUT.gif/.mp4/.png (one per clip)."),
-    bvh: Optional[Path] = typer.Option(None, "--bvh", help="Also export OUT.bvh (one per clip)."),
-    tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", help="Tokenizer run (default: the GPT's own)."),
+    seconds: Optional[float] = typer.Option(None, "--seconds", help="Target length in seconds, > 0: End is masked "
+                                            "before it and forced at it."),
+    out: Path = output_option(help="Output motion artifact (.h5).", suffixes=H5),
+    render: Optional[Path] = output_option("--render", help="Also render each clip to this .gif, .mp4 or .png "
+                                           "(numbered when there are several).", suffixes=RENDER_SUFFIXES,
+                                           required=False),
+    bvh: Optional[Path] = output_option("--bvh", help="Also export each clip to this .bvh (numbered when there are "
+                                        "several).", suffixes=(".bvh",), required=False),
+    tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Tokenizer run (default: the GPT's own).",
+                                             callback=existing),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode with another tokenizer."),
     as_json: bool = JsonOut,
 ):
@@ -67,7 +84,10 @@ def sample(
     from motok.gpt.sample import sample as _sample
     texts = list(text)
     if texts_file is not None:
-        texts += [ln.strip() for ln in texts_file.read_text().splitlines() if ln.strip()]
+        try:
+            texts += [ln.strip() for ln in texts_file.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        except (OSError, UnicodeDecodeError) as e:
+            fail(f"--texts-file {texts_file}: not a readable text file ({e})")
     summary = run(_sample, gpt, texts, out, num_samples=num_samples, seed=seed, temperature=temperature,
                   top_k=top_k, top_p=top_p, argmax=argmax, seconds=seconds, render=render, bvh=bvh,
                   tokenizer=tokenizer, allow_mismatch=allow_mismatch)

@@ -1,6 +1,8 @@
 """The ``motok`` command line: the root app, its global options and the commands of the data
 stage; each other stage registers its own sub-app (``motok/cli/<stage>.py``). Commands parse
-arguments, call one stage function through :func:`motok.cli.common.run` and print its result."""
+arguments, call one stage function through :func:`motok.cli.common.run` and print its result.
+The conventions every command follows (options, aliases, ``--quiet``) are applied to the whole
+tree by :class:`motok.cli.conventions.MotokGroup`."""
 
 from __future__ import annotations
 
@@ -12,15 +14,17 @@ from typing import Optional
 import typer
 
 from motok import __version__, progress
-from motok.cli.common import DataRoot, JsonOut, Sets, choose_mujoco_gl, existing, recipe_option, report, run
+from motok.cli.common import (H5, DataRoot, JsonOut, Sets, choose_mujoco_gl, data_option, existing, output_option,
+                              recipe_option, report, results, run, wrote)
 from motok.cli.control import app as control_app
+from motok.cli.conventions import MotokGroup, examples, renamed
 from motok.cli.eval import app as eval_app
 from motok.cli.gpt import app as gpt_app
 from motok.cli.sim import app as sim_app
 from motok.cli.tokenize import app as tokenize_app
 
 app = typer.Typer(help="motok: learned human motion, from mocap to tokens, text and physics.",
-                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
+                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False, cls=MotokGroup)
 export_app = typer.Typer(help="Export motion to other formats.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
 app.add_typer(tokenize_app, name="tokenize")
@@ -29,7 +33,7 @@ app.add_typer(sim_app, name="sim")
 app.add_typer(eval_app, name="eval")
 app.add_typer(control_app, name="control")
 
-Artifact = typer.Argument(..., help="A motion or motion-dataset artifact.", callback=existing)
+MotionData = data_option("A motion or motion-dataset artifact (.h5).")
 ClipName = typer.Option(..., "--clip", help="Clip name (or index).")
 
 
@@ -42,7 +46,8 @@ def _version(value: bool):
 @app.callback()
 def main(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Show the version."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or chatter."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or chatter (results and errors are "
+                               "still printed); also accepted after the subcommand."),
 ):
     progress.configure(quiet=quiet)
     # Before any command imports mujoco, which reads MUJOCO_GL once, at import.
@@ -53,16 +58,28 @@ def _clip_key(clip: str):
     return int(clip) if clip.isdigit() else clip
 
 
-@app.command()
+@app.command(epilog=examples(
+    "motok preprocess --recipe recipes/preprocess/bandai2.yaml -o runs/bandai2.h5",
+    "motok preprocess -d my_take.bvh -d more_takes/ -o mine.h5   (no captions, split 'none')",
+    "motok preprocess -d my_takes/ --annotations my_annotations/ -o mine.h5"))
+@renamed(i="--data", input="--data", pattern="--clips")
 def preprocess(
-    out: Path = typer.Option(..., "-o", "--out", help="Output motion-dataset (.h5)."),
-    inputs: list[str] = typer.Option([], "--input", "-i", help="BVH/npy file, folder or archive (repeatable)."),
-    annotations: Optional[str] = typer.Option(None, "--annotations", help="HumanML3D-layout captions and splits."),
-    pattern: Optional[str] = typer.Option(None, "--pattern", help="Clip-name glob, e.g. 'dataset-2_walk_*'."),
-    skeleton: Optional[str] = typer.Option(None, "--skeleton", help="smpl22, bandai21 or a YAML path."),
-    fps: Optional[float] = typer.Option(None, "--fps", help="Target frame rate (default 20)."),
+    out: Path = output_option(help="Output motion-dataset (.h5).", suffixes=H5),
+    inputs: list[str] = typer.Option([], "--data", "-d", metavar="PATH",
+                                     help="Mocap to read: a .bvh or .npy file, a folder or a .zip/.tar.* archive "
+                                          "(repeatable). Default: Bandai-Namco set 2 in the data root."),
+    annotations: Optional[str] = typer.Option(None, "--annotations", metavar="DIR|none",
+                                              help="HumanML3D-layout captions and splits. Default: the "
+                                                   "Bandai-Namco annotations for the Bandai-Namco archives only; "
+                                                   "any other input gets no captions and the split 'none'."),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB",
+                                        help="Only clips whose name matches, e.g. 'dataset-2_walk_*'."),
+    skeleton: Optional[str] = typer.Option(None, "--skeleton", help="smpl22, bandai21 or a YAML path "
+                                           "(default: detected from the joint names)."),
+    fps: Optional[float] = typer.Option(None, "--fps", help="Target frame rate, > 0 (default 20)."),
     legacy: bool = typer.Option(False, "--legacy", help="Reproduce the official HumanML3D quirks."),
-    skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip bad inputs (listed in provenance)."),
+    skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip bad inputs instead of stopping (each is "
+                                  "listed, with why, in the summary and the provenance)."),
     jobs: Optional[int] = typer.Option(None, "-j", "--jobs", help="Worker processes."),
     limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N clips (smoke runs)."),
     recipe: Optional[Path] = recipe_option("recipes/preprocess/"), sets: list[str] = Sets,
@@ -73,7 +90,7 @@ def preprocess(
     from motok.data.preprocess import PreprocessConfig
     from motok.data.preprocess import preprocess as _preprocess
 
-    flags = {"inputs": inputs or None, "annotations": annotations, "pattern": pattern, "skeleton": skeleton,
+    flags = {"inputs": inputs or None, "annotations": annotations, "pattern": clips, "skeleton": skeleton,
              "fps": fps, "jobs": jobs, "limit": limit}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["legacy=true"] * legacy + ["skip_bad=true"] * skip_bad
@@ -83,57 +100,71 @@ def preprocess(
 
 
 def _skipped(skipped: list[dict]) -> str:
-    return f"{len(skipped)}" + "".join(f"\n  {s['input']}: {s['error']}" for s in skipped[:10])
+    more = f"\n  ... and {len(skipped) - 10} more (all in the provenance)" if len(skipped) > 10 else ""
+    return f"{len(skipped)}" + "".join(f"\n  {s['input']}: {s['error']}" for s in skipped[:10]) + more
 
 
-@app.command()
-def info(path: Path = typer.Argument(..., help="Any motok artifact.", callback=existing), as_json: bool = JsonOut,
+@app.command(epilog=examples("motok info runs/bandai2.h5", "motok info runs/gpt/   (a checkpoint bundle)"))
+def info(path: Path = typer.Argument(..., help="Any motok artifact (.h5) or checkpoint folder.", callback=existing),
+         as_json: bool = JsonOut,
          captions: int = typer.Option(3, "--captions", help="How many captions to show.")):
-    """Print an artifact: kind, version, provenance, datasets, split sizes, a few captions."""
+    """Print what a file holds: kind, version, provenance; datasets, splits and captions of an
+    artifact; config, references and tensors (shapes, parameters, verified hash) of a bundle."""
     from motok.info import describe, print_description
     d = run(describe, path, captions)
     if as_json:
         typer.echo(json.dumps(d, indent=2, default=str))
     else:
-        print_description(d, progress.console)
+        print_description(d, results)
 
 
-@app.command()
+@app.command(epilog=examples(
+    "motok render -d runs/bandai2.h5 --clip dataset-2_walk_normal_001 -o walk.gif",
+    "motok render -d walk_generated.h5 --clip 0 -o sheet.png --max-frames 40"))
+@renamed(positional="--data")
 def render(
-    path: Path = Artifact, clip: str = ClipName,
-    out: Path = typer.Option(..., "-o", "--out", help="Output .gif, .mp4 or .png (contact sheet)."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1),
+    data: Path = MotionData, clip: str = ClipName,
+    out: Path = output_option(help="Output .gif, .mp4 or .png (a contact sheet).", suffixes=(".gif", ".mp4", ".png")),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Only the first N frames."),
+    as_json: bool = JsonOut,
 ):
     """Render a clip as a 3D stick figure with floor grid, root trajectory and caption."""
     from motok.render.clip import render_artifact_clip
-    written = run(render_artifact_clip, path, _clip_key(clip), out, max_frames)
-    progress.info(f"wrote {written}")
+    written = run(render_artifact_clip, data, _clip_key(clip), out, max_frames)
+    wrote({"output": str(written), "data": str(data), "clip": clip}, as_json)
 
 
-@export_app.command("bvh")
+@export_app.command("bvh", epilog=examples(
+    "motok export bvh -d runs/bandai2.h5 --clip dataset-2_walk_normal_001 -o walk.bvh",
+    "motok export bvh -d walk_generated.h5 --clip 0 -o walk.bvh --order XYZ"))
+@renamed(positional="--data")
 def export_bvh_cmd(
-    path: Path = Artifact, clip: str = ClipName,
-    out: Path = typer.Option(..., "-o", "--out", help="Output .bvh"),
+    data: Path = MotionData, clip: str = ClipName,
+    out: Path = output_option(help="Output .bvh (centimetres, Y up).", suffixes=(".bvh",)),
     order: str = typer.Option("ZXY", "--order", help="Euler order of the rotation channels (ZXY or XYZ, ...)."),
+    as_json: bool = JsonOut,
 ):
     """Export a clip as BVH (centimetres, Y up) for Blender and game engines."""
     from motok.data.export import export_clip
-    written = run(export_clip, path, _clip_key(clip), out, order)
-    progress.info(f"wrote {written}")
+    written = run(export_clip, data, _clip_key(clip), out, order)
+    wrote({"output": str(written), "data": str(data), "clip": clip, "order": order}, as_json)
 
 
-@app.command()
+@app.command(epilog=examples("motok plot runs/gpt", "motok plot runs/expert --keys success,mpjpe_mm --x samples "
+                             "--x2 wall_s --smooth 0.9 -o expert.png"))
 def plot(metrics: Path = typer.Argument(..., help="A run folder or its metrics.jsonl.", callback=existing),
-         out: Optional[Path] = typer.Option(None, "-o", "--out", help="PNG (default RUN/curves.png)."),
+         out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png).", suffixes=(".png",),
+                                             required=False),
          keys: Optional[str] = typer.Option(None, "--keys", help="Comma-separated metrics (default: all)."),
          x: str = typer.Option("iteration", "--x", help="Field on the x axis, e.g. samples."),
          x2: Optional[str] = typer.Option(None, "--x2", help="Second x axis on top, e.g. wall_s."),
-         smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve.")):
+         smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve."),
+         as_json: bool = JsonOut):
     """Plot training curves from a metrics JSONL to PNG."""
     from motok.render.plot import plot_run
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
     dst = run(plot_run, metrics, out, names, x, smooth=smooth, x2=x2)
-    progress.info(f"wrote {dst}")
+    wrote({"output": str(dst), "metrics": str(metrics), "keys": names, "x": x, "x2": x2}, as_json)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -10,16 +10,24 @@ from typing import Optional
 
 import typer
 
-from motok import progress as _progress
-from motok.cli.common import fail, input_option, print_json, report, run
+from motok.cli.common import data_option, existing, fail, output_option, print_json, report, run, wrote
+from motok.cli.conventions import examples
 
 app = typer.Typer(help="Physics: the MuJoCo humanoid built from a dataset's skeleton, and its reference motions.",
                   no_args_is_help=True)
 
-Data = input_option("--data", help="A motion-dataset artifact (.h5).")
-HumanoidOpt = typer.Option(None, "--humanoid", help="Humanoid MJCF (default: built from --data once and cached).")
+VIDEO = (".mp4", ".gif")
+Data = data_option("A motion-dataset artifact (.h5).")
+HumanoidOpt = typer.Option(None, "--humanoid", help="Humanoid MJCF (default: built from --data once and cached).",
+                           callback=existing)
 Hz = typer.Option(None, "--hz", help="Control rate in Hz (default: the humanoid's, 30).")
-Sets = typer.Option([], "--set", help="Override a HumanoidConfig key: --set key=value (repeatable).")
+Sets = typer.Option([], "--set", metavar="KEY=VALUE", help="Override a HumanoidConfig key (repeatable).")
+Stick = typer.Option(False, "--stick", help="Draw the stick figure instead of MuJoCo's renderer.")
+JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
+
+
+def _key(clip: str):
+    return int(clip) if clip.isdigit() else clip
 
 
 def _setup(data: Path, humanoid: Optional[Path], hz: Optional[float], clips):
@@ -30,14 +38,15 @@ def _setup(data: Path, humanoid: Optional[Path], hz: Optional[float], clips):
     return hum, load_library(hum, data, control_hz=hz, clips=clips)
 
 
-@app.command("build-humanoid")
+@app.command("build-humanoid", epilog=examples("motok sim build-humanoid -d runs/bandai2.h5 -o humanoid.xml",
+                                               "motok sim build-humanoid -d runs/bandai2.h5 --mass 70 -o heavy.xml"))
 def build_humanoid_cmd(
     data: Path = Data,
-    out: Path = typer.Option(..., "-o", "--out", help="Output MJCF (.xml)."),
+    out: Path = output_option(help="Output MJCF (.xml).", suffixes=(".xml",)),
     mass: Optional[float] = typer.Option(None, "--mass", help="Total mass in kg (default 65)."),
     timestep: Optional[float] = typer.Option(None, "--timestep", help="Physics timestep in s (default 1/120)."),
     sets: list[str] = Sets,
-    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    as_json: bool = JsonOut,
 ):
     """An MJCF humanoid from the dataset's skeleton: capsules, box feet, ranges from the data, PD actuators."""
     from motok.config import load_config
@@ -50,48 +59,63 @@ def build_humanoid_cmd(
     report(summary, as_json, "build-humanoid")
 
 
-@app.command()
+@app.command(epilog=examples("motok sim replay -d runs/bandai2.h5 --clip dataset-2_walk_normal_001 -o walk.mp4",
+                             "motok sim replay -d runs/bandai2.h5 --clip 3 -o walk.gif --stick --max-frames 60"))
 def replay(
     data: Path = Data,
     clip: str = typer.Option(..., "--clip", help="Clip name (or index)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output .mp4 or .gif."),
+    out: Path = output_option(help="Output .mp4 or .gif.", suffixes=VIDEO),
     humanoid: Optional[Path] = HumanoidOpt,
     hz: Optional[float] = Hz,
-    max_frames: Optional[int] = typer.Option(None, "--max-frames"),
-    stick: bool = typer.Option(False, "--stick", help="Draw the stick figure instead of MuJoCo's renderer."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Only the first N frames."),
+    stick: bool = Stick,
+    as_json: bool = JsonOut,
 ):
     """Play a reference clip kinematically in MuJoCo and render it offscreen."""
-    key = int(clip) if clip.isdigit() else clip
-
     def go():
         from motok.sim.render import render_trajectory
-        hum, lib = _setup(data, humanoid, hz, [key])
+        hum, lib = _setup(data, humanoid, hz, [_key(clip)])
         qpos = lib.clip(0)["qpos"][:max_frames]
-        return render_trajectory(hum, qpos, out, lib.fps, title=lib.names[0], backend="stick" if stick else "auto")
+        path, backend = render_trajectory(hum, qpos, out, lib.fps, title=lib.names[0],
+                                          backend="stick" if stick else "auto")
+        return {"output": str(path), "renderer": backend, "clip": lib.names[0], "frames": len(qpos)}
 
-    path, backend = run(go)
-    _progress.info(f"wrote {path} ({backend} renderer)")
+    summary = run(go)
+    wrote(summary, as_json, f"{summary['output']} ({summary['renderer']} renderer)")
 
 
-@app.command("pd-track")
+@app.command("pd-track", epilog=examples(
+    "motok sim pd-track -d runs/bandai2.h5 --clips 'dataset-2_walk_*'",
+    "motok sim pd-track -d runs/bandai2.h5 --clip dataset-2_walk_normal_001 -o pd.mp4 --seconds 5"))
 def pd_track_cmd(
     data: Path = Data,
-    clip: str = typer.Option("all", "--clip", help="Clip name or index, or 'all' (no video then)."),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Video of the tracking (.mp4/.gif), one clip only."),
+    clip: Optional[str] = typer.Option(None, "--clip", help="One clip (name or index); needed for -o."),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="A clip-name glob (default: every "
+                                        "clip)."),
+    out: Optional[Path] = output_option(help="Video of the tracking (.mp4/.gif), one clip only.", suffixes=VIDEO,
+                                        required=False),
     humanoid: Optional[Path] = HumanoidOpt,
     hz: Optional[float] = Hz,
-    seconds: Optional[float] = typer.Option(None, "--seconds", help="Track at most this long (default: whole clip)."),
-    stick: bool = typer.Option(False, "--stick", help="Draw the stick figure instead of MuJoCo's renderer."),
-    as_json: bool = typer.Option(False, "--json", help="Print the results as JSON."),
+    seconds: Optional[float] = typer.Option(None, "--seconds", help="Track at most this long, > 0 (default: whole "
+                                            "clip)."),
+    stick: bool = Stick,
+    as_json: bool = JsonOut,
 ):
     """Track a reference with plain PD (no policy) and report how long the humanoid stays up."""
-    clips = None if clip == "all" else [int(clip) if clip.isdigit() else clip]
-    if clips is None and out is not None:
+    if clip == "all":  # the old spelling of "every clip"
+        clip = None
+    if clip is not None and clips is not None:
+        fail("give --clip (one clip) or --clips (a glob), not both")
+    if out is not None and clip is None:
         fail("-o renders one clip: pass --clip NAME")
+    if seconds is not None and not seconds > 0:
+        fail(f"--seconds {seconds} must be > 0")
 
     def go():
         from motok.control.baselines import pd_track_run
-        return pd_track_run(*_setup(data, humanoid, hz, clips), seconds, out, stick)
+        from motok.control.clips import select_clips
+        chosen = [_key(clip)] if clip is not None else (select_clips(data, clips) if clips else None)
+        return pd_track_run(*_setup(data, humanoid, hz, chosen), seconds, out, stick)
 
     summary = run(go)
     if as_json:

@@ -8,12 +8,14 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, Resume, Sets, existing, input_option, recipe_option, report, run
+from motok.cli.common import H5, JsonOut, Resume, Sets, data_option, output_option, recipe_option, report, results, run
+from motok.cli.conventions import examples, renamed
 
 app = typer.Typer(help="Motion tokenizer (T2M-GPT VQ-VAE): train, encode, decode, eval.", no_args_is_help=True)
 
 Tokenizer = typer.Option(..., "--tokenizer", "-t", help="A tokenizer run folder (from `tokenize train`).")
 NumCodebooks = typer.Option(None, "--num-codebooks", "-m", help="Use only the first M codebooks (residual VQ).")
+Split = typer.Option("test", "--split", help="The split of --data to evaluate (train, val, test).")
 
 
 def _report(summary: dict, as_json: bool, title: str):
@@ -22,19 +24,20 @@ def _report(summary: dict, as_json: bool, title: str):
         return
     from rich.table import Table
 
-    from motok.progress import console
     cb = Table(title="codebooks")
     for col in ("codebook", "usage", "perplexity", "used", "dead"):
         cb.add_column(col, justify="right")
     for c in summary["codebooks"]:
         cb.add_row(str(c["codebook"]), f"{c['usage']:.3f}", f"{c['perplexity']:.1f}", str(c["used"]), str(c["dead"]))
-    console.print(cb)
+    results.print(cb)
 
 
-@app.command()
+@app.command(epilog=examples(
+    "motok tokenize train -d runs/bandai2.h5 --recipe recipes/tokenizer/default.yaml -o runs/tok",
+    "motok tokenize train -d runs/bandai2.h5 --recipe recipes/tokenizer/demo.yaml --set iterations=50 -o /tmp/tok"))
 def train(
-    data: Path = input_option("--data", help="Training motion-dataset (.h5)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Run folder (checkpoint bundle + metrics.jsonl)."),
+    data: Path = data_option("Training motion-dataset (.h5)."),
+    out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/tokenizer/"), sets: list[str] = Sets,
     resume: bool = Resume, as_json: bool = JsonOut,
 ):
@@ -47,11 +50,12 @@ def train(
         _report(summary, as_json, "tokenize train")
 
 
-@app.command()
+@app.command(epilog=examples("motok tokenize encode -t runs/tok -d runs/bandai2.h5 -o runs/tokens.h5",
+                             "motok tokenize encode -t runs/rvq -d runs/bandai2.h5 -m 2 --split test -o test.h5"))
 def encode(
     tokenizer: Path = Tokenizer,
-    data: Path = input_option("--data", help="A motion or motion-dataset artifact."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output tokens artifact (.h5)."),
+    data: Path = data_option("A motion or motion-dataset artifact."),
+    out: Path = output_option(help="Output tokens artifact (.h5).", suffixes=H5),
     split: Optional[str] = typer.Option(None, "--split", help="Only this split (default: every clip)."),
     num_codebooks: Optional[int] = NumCodebooks, as_json: bool = JsonOut,
 ):
@@ -60,11 +64,12 @@ def encode(
     _report(run(_encode, tokenizer, data, out, num_codebooks, split), as_json, "tokenize encode")
 
 
-@app.command()
+@app.command(epilog=examples("motok tokenize decode -d runs/tokens.h5 -t runs/tok -o recon.h5"))
+@renamed(positional="--data")
 def decode(
-    tokens: Path = typer.Argument(..., help="A tokens artifact.", callback=existing),
+    tokens: Path = data_option("A tokens artifact (from `tokenize encode`)."),
     tokenizer: Path = Tokenizer,
-    out: Path = typer.Option(..., "-o", "--out", help="Output motion artifact (.h5)."),
+    out: Path = output_option(help="Output motion artifact (.h5).", suffixes=H5),
     num_codebooks: Optional[int] = NumCodebooks,
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode tokens made by another tokenizer."),
     as_json: bool = JsonOut,
@@ -74,11 +79,12 @@ def decode(
     _report(run(_decode, tokenizer, tokens, out, num_codebooks, allow_mismatch), as_json, "tokenize decode")
 
 
-@app.command("eval")
+@app.command("eval", epilog=examples("motok tokenize eval -t runs/tok -d runs/bandai2.h5 --split test",
+                                     "motok tokenize eval -t runs/rvq -d runs/bandai2.h5 -m 1 --json"))
 def evaluate(
     tokenizer: Path = Tokenizer,
-    data: Path = input_option("--data", help="A motion-dataset artifact."),
-    split: str = typer.Option("test", "--split"),
+    data: Path = data_option("A motion-dataset artifact."),
+    split: str = Split,
     num_codebooks: Optional[int] = NumCodebooks, as_json: bool = JsonOut,
 ):
     """Reconstruction MPJPE (mm), acceleration error, per-codebook usage, perplexity and dead codes."""

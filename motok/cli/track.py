@@ -9,12 +9,12 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, input_option, output_option, report, results, run
+from motok.cli.common import JsonOut, data_option, input_option, output_option, report, results, run
 from motok.cli.conventions import examples
 
 
 def track_cmd(
-    motion: Path = input_option("--motion", help="A motion artifact: a dataset, decoded tokens, GPT samples."),
+    motion: Path = data_option("The motion to track: a dataset, decoded tokens, GPT samples (any motion artifact)."),
     expert: Path = input_option("--expert", help="The controller: a control-expert run folder."),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),
@@ -37,6 +37,6 @@ def track_cmd(
 
 def register(app: typer.Typer) -> None:
     app.command("track", epilog=examples(
-        "motok control track --motion walk.h5 --expert runs/expert -o walk_sim.h5 --render walk_sim.mp4",
-        "motok control track --motion runs/bandai2.h5 --clips 'dataset-2_run_*' --expert runs/expert -o run_sim.h5",
+        "motok control track -d walk.h5 --expert runs/expert -o walk_sim.h5 --render walk_sim.mp4",
+        "motok control track -d runs/bandai2.h5 --clips 'dataset-2_run_*' --expert runs/expert -o run_sim.h5",
     ))(track_cmd)

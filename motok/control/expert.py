@@ -27,7 +27,7 @@ import torch
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import atomic_path
-from motok.checkpoint import CheckpointError, bundle_ref, load_bundle, register_kind
+from motok.checkpoint import register_kind
 from motok.config import from_dict
 from motok.control import runner
 from motok.control.clips import select_clips
@@ -252,12 +252,8 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
 
 
 def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
-    run = Path(run)
-    meta, state, _ = load_bundle(run, KIND)
+    meta, state, hum = runner.load_run(run, KIND)
     cfg = from_dict(ExpertConfig, meta["config"])
-    hum = load_humanoid(run / "humanoid.xml")
-    if runner.mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
-        raise CheckpointError(f"{run}/humanoid.xml does not match the checkpoint's MJCF hash")
     ex = meta["extra"]
     ac = build_actor_critic(cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
     ac.load_state_dict(split_state(state, "ac."))
@@ -271,22 +267,16 @@ def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None 
     summary per content and per style, and write ``RUN/eval.json`` (``RUN/eval_SPLIT.json``) with
     the checkpoint it measured (iteration, samples, training wall time, MJCF hash) and
     provenance, so a number quoted from it can be traced to the weights and data that made it."""
-    from motok.sim.reference import load_library
-
     run = Path(run)
     cfg, hum, ac, meta = load_expert(run)
     if termination is not None:
         cfg.task.termination = termination
     if distance is not None:
         cfg.task.termination_distance = distance
-    src = data or bundle_ref(run, meta, "data", hint="; pass --data")
-    names = select_clips(src, clips, split) if clips or split else meta["extra"]["clips"]
-    lib = load_library(hum, src, control_hz=cfg.env.control_hz, clips=names)
+    src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split, hint="; pass --data")
     res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch)
     res["groups"] = by_group(res["clips"])
-    ex = meta["extra"]
-    res["checkpoint"] = {"iteration": ex["iteration"], "samples": ex["samples"],
-                         "wall_s": ex.get("last_metrics", {}).get("wall_s"), "mjcf_sha256": ex["mjcf_sha256"]}
+    res["checkpoint"] = runner.checkpoint_info(meta)
     prov = Provenance(command=command_line(), config={"run": str(run), "clips": clips, "split": split,
                                                         "task": asdict(cfg.task)},
                       inputs=hash_inputs([src]))

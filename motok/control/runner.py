@@ -80,6 +80,38 @@ def mjcf_hash(hum: Humanoid) -> str:
     return hashlib.sha256(Path(hum.path).read_bytes()).hexdigest()
 
 
+def load_run(run, kind: str) -> tuple[dict, dict, Humanoid]:
+    """``(meta, weights, humanoid)`` of a control run, its ``humanoid.xml`` checked against the hash."""
+    from motok.sim.humanoid import load_humanoid
+
+    run = Path(run)
+    meta, state, _ = load_bundle(run, kind)
+    hum = load_humanoid(run / "humanoid.xml")
+    if mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
+        raise CheckpointError(f"{run}/humanoid.xml does not match the checkpoint's MJCF hash")
+    return meta, state, hum
+
+
+def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: str | None = None,
+                split: str | None = None, hint: str = ": pass --data"):
+    """``(dataset, library)`` to evaluate a run on: its own dataset and clips unless ``data``,
+    ``clips`` (a glob) or ``split`` say otherwise."""
+    from motok.checkpoint import bundle_ref
+    from motok.control.clips import select_clips
+    from motok.sim.reference import load_library
+
+    src = data or bundle_ref(Path(run), meta, "data", hint=hint)
+    names = select_clips(src, clips, split) if clips or split else meta["extra"]["clips"]
+    return src, load_library(hum, src, control_hz=control_hz, clips=names)
+
+
+def checkpoint_info(meta: dict) -> dict:
+    """What an evaluation says about the checkpoint it measured."""
+    ex = meta["extra"]
+    return {"iteration": ex["iteration"], "samples": ex["samples"], "wall_s": ex.get("last_metrics", {}).get("wall_s"),
+            "mjcf_sha256": ex["mjcf_sha256"]}
+
+
 def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, kind: str, resume: bool = False,
           until: int | None = None, data=None, command: str | None = None, extra: dict | None = None,
           evaluate: Callable[[Trainer], dict] | None = None, label: str = "train",

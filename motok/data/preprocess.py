@@ -7,11 +7,17 @@ a reference clip's frame-0 bone lengths and extracts the HumanML3D features of e
 (``motok.features.humanml3d``). Both passes fan out over ``jobs`` worker processes.
 Nothing is written unless the whole run succeeds; with ``skip_bad`` bad clips are listed in
 the artifact's provenance instead of stopping the run.
+
+Captions and splits come from ``annotations``. By default (``auto``) only the default data set
+gets its own: inputs that all lie in the data root's ``bandai-namco/`` folder use
+``bandai-namco/annotations``; any other input (your own BVH or joint arrays) gets no captions
+and the split ``none`` unless an annotations folder is named.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -22,22 +28,29 @@ from pathlib import Path
 import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.atomic import check_writable
 from motok.data.annotations import Annotations
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.data.dataset import Clip, write_motion
-from motok.data.root import resolve_data_root
+from motok.data.root import DataRootError, resolve_data_root
 from motok.data.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
-from motok.data.sources import MotionSource, iter_sources, load_npy_positions
-from motok.errors import MissingFileError, UnknownNameError
+from motok.data.sources import MotionSource, count_sources, iter_sources, load_npy_positions
+from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
 
 
+BANDAI_FOLDER = "bandai-namco"  # under the data root
+BANDAI_ANNOTATIONS = "bandai-namco/annotations"
+
+
 @dataclass
 class PreprocessConfig:
     inputs: list[str] = field(default_factory=lambda: ["bandai-namco/bandai-namco-2.tar.xz"])
-    annotations: str | None = "bandai-namco/annotations"
+    # "auto": the Bandai-Namco annotations for Bandai-Namco inputs only; "none" (or None): no
+    # captions, split "none"; else a HumanML3D-layout folder (relative to the data root or not).
+    annotations: str | None = "auto"
     pattern: str = "*"  # clip-name glob; also decides which split entries must be present
     skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
     fps: float = 20.0
@@ -59,6 +72,49 @@ class _Loaded:
     source_frames: int
     positions: np.ndarray  # (T, J, 3) metres at the target fps
     labels: dict
+
+
+def check_config(cfg: PreprocessConfig) -> PreprocessConfig:
+    """Refuse values that would fail late or mean nothing, before any input is read."""
+    problems = []
+    for key in ("fps", "npy_fps"):
+        v = getattr(cfg, key)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            problems.append(f"{key} {v} must be a positive number of frames per second")
+    if cfg.scale is not None and not (math.isfinite(cfg.scale) and cfg.scale > 0):
+        problems.append(f"scale {cfg.scale} must be > 0")
+    if cfg.jobs < 1:
+        problems.append(f"jobs {cfg.jobs} must be >= 1")
+    if cfg.limit is not None and cfg.limit < 1:
+        problems.append(f"limit {cfg.limit} must be >= 1")
+    if cfg.min_frames < 2:
+        problems.append(f"min_frames {cfg.min_frames} must be >= 2 (features are frame differences)")
+    if not cfg.inputs:
+        problems.append("no inputs")
+    if problems:
+        raise UserError("; ".join(problems))
+    return cfg
+
+
+def resolve_annotations(cfg: PreprocessConfig, inputs: list[Path], data_root) -> Path | None:
+    """The annotations folder to use, or None (see the module docstring for ``auto``)."""
+    a = cfg.annotations
+    if a is None or str(a).lower() == "none":
+        return None
+    if str(a).lower() != "auto":
+        return resolve_input(str(a), data_root)
+    try:
+        root = resolve_data_root(data_root)
+    except DataRootError:
+        return None  # no data root: the inputs cannot be the default data set
+    bandai = (root / BANDAI_FOLDER).resolve()
+    if not all(p.resolve().is_relative_to(bandai) for p in inputs):
+        return None
+    ann = root / BANDAI_ANNOTATIONS
+    if not ann.is_dir():
+        raise MissingFileError(f"{ann}: the Bandai-Namco annotations are missing (see docs/data.md), or pass "
+                               f"--annotations none for no captions")
+    return ann
 
 
 def resolve_input(p: str, data_root: Path | None) -> Path:
@@ -105,6 +161,8 @@ def _load(src: MotionSource, skeleton: Skeleton | None, cfg: PreprocessConfig) -
         if missing:
             raise MotionFormatError(src.origin, f"joints {missing} of skeleton {sk.name!r} are not in the file")
         src_fps, n_src = snap_fps(m.fps), m.num_frames
+        if n_src == 0:  # a valid BVH (a skeleton in its rest pose), but nothing to preprocess
+            raise MotionFormatError(src.origin, "'Frames: 0': the file has a skeleton but no motion")
         if abs(src_fps - cfg.fps) > 1e-6:
             m = dataclasses.replace(m, rotations=resample_quats(m.rotations, src_fps, cfg.fps),
                                     translations=resample_positions(m.translations, src_fps, cfg.fps),
@@ -121,12 +179,28 @@ def _load(src: MotionSource, skeleton: Skeleton | None, cfg: PreprocessConfig) -
             pos = resample_positions(pos, src_fps, cfg.fps)
     if not np.all(np.isfinite(pos)):
         raise MotionFormatError(src.origin, "joint positions contain NaN or infinity")
+    if len(pos) < cfg.min_frames:
+        raise MotionFormatError(src.origin, f"clip has {len(pos)} frame(s) at {cfg.fps:g} fps ({n_src} at the "
+                                f"source's {src_fps:g}); at least {cfg.min_frames} are needed")
     scale = cfg.scale if cfg.scale is not None else guess_scale(pos, sk)
     pos = pos * scale
-    if len(pos) < cfg.min_frames:
-        raise MotionFormatError(src.origin, f"clip has {len(pos)} frames at {cfg.fps} fps; at least "
-                                f"{cfg.min_frames} are needed")
     return _Loaded(src.name, src.origin, float(src_fps), int(n_src), pos, labels_from_name(src.name)), sk
+
+
+class _Bad:
+    """A clip that failed: where it came from and why, each said once."""
+
+    def __init__(self, origin: str, error: Exception):
+        self.origin, self.error = origin, error
+
+    def reason(self) -> str:
+        if isinstance(self.error, MotionFormatError) and self.error.source == self.origin:
+            return self.error.message if self.error.line is None else f"line {self.error.line}: {self.error.message}"
+        msg = str(self.error)
+        for sep in (": ", ", "):
+            if msg.startswith(self.origin + sep):
+                return msg[len(self.origin) + len(sep):]
+        return msg
 
 
 def _load_job(args):
@@ -134,27 +208,27 @@ def _load_job(args):
     try:
         return _load(src, skeleton, cfg)
     except (MotionFormatError, SkeletonError, ValueError) as e:
-        return e
+        return _Bad(src.origin, e)
 
 
 def _feature_job(args):
-    name, positions, sk, offsets, cfg = args
+    origin, positions, sk, offsets, cfg = args
     try:
         return extract_features(positions, sk, target_offsets=offsets, fps=cfg.fps, legacy=cfg.legacy)
     except (ValueError, FloatingPointError) as e:
-        return MotionFormatError(name, f"feature extraction failed: {e}")
+        return _Bad(origin, MotionFormatError(origin, f"feature extraction failed: {e}"))
 
 
 def _pool(jobs: int):
     return ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("fork")) if jobs > 1 else None
 
 
-def _map(pool, fn, items, progress, task, weight=lambda x: 1):
-    """Map in order, inline or over the pool, advancing the progress bar by ``weight``."""
+def _map(pool, fn, items, progress, task):
+    """Map in order, inline or over the pool, advancing the progress bar by one per item."""
     if pool is None:
         for it in items:
             out = fn(it)
-            progress.advance(task, weight(out))
+            progress.advance(task)
             yield out
         return
     pending = []
@@ -163,29 +237,40 @@ def _map(pool, fn, items, progress, task, weight=lambda x: 1):
         pending.append(pool.submit(fn, it))
         while len(pending) > window:
             out = pending.pop(0).result()
-            progress.advance(task, weight(out))
+            progress.advance(task)
             yield out
     for fut in pending:
         out = fut.result()
-        progress.advance(task, weight(out))
+        progress.advance(task)
         yield out
 
 
 def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | None = None,
                command: str | None = None) -> dict:
     """Run the whole preprocessing; returns a summary dict (also stored in provenance)."""
+    check_config(cfg)
+    check_writable(out)
     inputs = [resolve_input(p, data_root) for p in cfg.inputs]
     for p in inputs:
         if not p.exists():
             raise MissingFileError(f"input {p} does not exist")
-    ann = Annotations.load(resolve_input(cfg.annotations, data_root)) if cfg.annotations else None
+    ann_root = resolve_annotations(cfg, inputs, data_root)
+    ann = Annotations.load(ann_root) if ann_root is not None else None
     skeleton = load_skeleton(cfg.skeleton) if cfg.skeleton else None
     skipped: list[dict] = []
 
-    def bad(origin, err):
+    def bad(b: _Bad):
         if not cfg.skip_bad:
-            raise err
-        skipped.append({"input": origin, "error": str(err)})
+            raise b.error
+        skipped.append({"input": b.origin, "error": b.reason()})
+
+    def nothing_left(stage: str):
+        where = ", ".join(map(str, inputs))
+        if skipped:  # --skip-bad dropped everything: say why, not only that nothing is left
+            first = skipped[0]
+            raise MotionFormatError(where, f"all {len(skipped)} clip(s) matching {cfg.pattern!r} were bad ({stage}); "
+                                    f"the first: {first['input']}: {first['error']}")
+        raise MotionFormatError(where, f"no clip matching {cfg.pattern!r} could be loaded")
 
     def selected():
         n = 0
@@ -198,28 +283,28 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                 n += 1
                 yield src
 
+    known = [count_sources(p, pattern=cfg.pattern + ".*") for p in inputs]  # None: a compressed tar
+    total = None if None in known else min(sum(known), cfg.limit or sum(known))
     loaded: list[_Loaded] = []
     pool = _pool(cfg.jobs)
     try:
-        with make_progress("frames") as progress:
-            task = progress.add_task("parse", total=None)
+        with make_progress("clips") as progress:
+            task = progress.add_task("parse", total=total)
             gen = ((s, skeleton, cfg) for s in selected())
-            for res in _map(pool, _load_job, gen, progress, task,
-                            weight=lambda r: 0 if isinstance(r, Exception) else len(r[0].positions)):
-                if isinstance(res, Exception):
-                    bad(getattr(res, "source", "?"), res)
+            for res in _map(pool, _load_job, gen, progress, task):
+                if isinstance(res, _Bad):
+                    bad(res)
                     continue
                 clip, sk = res
                 if skeleton is None:
                     skeleton = sk
                 elif sk.name != skeleton.name:
-                    bad(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
-                                                   f"{skeleton.name!r} of earlier clips"))
+                    bad(_Bad(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
+                                                        f"{skeleton.name!r} of earlier clips")))
                     continue
                 loaded.append(clip)
             if not loaded:
-                raise MotionFormatError(", ".join(map(str, inputs)),
-                                        f"no clip matching {cfg.pattern!r} could be loaded")
+                nothing_left("reading")
             loaded.sort(key=lambda c: c.name)
             names = [c.name for c in loaded]
             if len(set(names)) != len(names):
@@ -238,8 +323,10 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                         captions[c.name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(c.name)]
                         keep.append(c)
                     except MotionFormatError as e:
-                        bad(e.source, e)
+                        bad(_Bad(c.origin, e))
                 loaded = keep
+                if not loaded:
+                    nothing_left("captions")
 
             ref = cfg.reference_clip or next((c.name for c in loaded if split_of.get(c.name) == "train"),
                                              loaded[0].name)
@@ -248,24 +335,28 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                 raise UnknownNameError(f"reference_clip {ref!r} is not among the loaded clips")
             offsets = skeleton_offsets(ref_clip.positions[0], skeleton)
 
-            task2 = progress.add_task("features", total=sum(len(c.positions) for c in loaded))
-            jobs = ((c.name, c.positions, skeleton, offsets, cfg) for c in loaded)
+            task2 = progress.add_task("features", total=len(loaded))
+            jobs = ((c.origin, c.positions, skeleton, offsets, cfg) for c in loaded)
             clips: list[Clip] = []
-            for c, res in zip(loaded, _map(pool, _feature_job, jobs, progress, task2,
-                                          weight=lambda r: 0 if isinstance(r, Exception) else len(r.features) + 1)):
-                if isinstance(res, Exception):
-                    bad(c.origin, res)
+            for c, res in zip(loaded, _map(pool, _feature_job, jobs, progress, task2)):
+                if isinstance(res, _Bad):
+                    bad(res)
                     continue
                 clips.append(Clip(c.name, res.features, res.joints, res.local_quats, res.root_translation,
                                   source=c.origin, source_fps=c.source_fps, split=split_of.get(c.name, "none"),
                                   labels=c.labels, captions=captions.get(c.name, [])))
+            if not clips:
+                nothing_left("features")
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
 
     train = [c for c in clips if c.split == "train"]
     stats_split = "train" if train else "all"
-    if not train:
+    if ann is None:
+        info("no annotations: no captions, every clip in split 'none', statistics over all clips "
+             "(--annotations DIR adds captions and splits)")
+    elif not train:
         info("[yellow]no clip is in the train split: statistics are over all clips[/]")
     mean, std = mean_std(np.concatenate([c.features for c in (train or clips)]), skeleton.num_joints)
 
@@ -279,5 +370,6 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
         "output": str(out), "clips": len(clips), "frames": int(sum(c.num_frames for c in clips)),
         "source_frames": int(sum(c.source_frames for c in loaded)),
         "fps": cfg.fps, "skeleton": skeleton.name, "feature_dim": skeleton.feature_dim,
-        "reference_clip": ref, "splits": counts, "skipped": skipped,
+        "reference_clip": ref, "annotations": str(ann_root) if ann_root else None, "splits": counts,
+        "skipped": skipped,
     }

@@ -386,7 +386,7 @@ def train_evaluator(cfg: EvaluatorConfig, data_path: str | Path, run: str | Path
         summary["retrieval"] = {"split": cfg.report_split, **retrieval(ev, report)}
     prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=hash_inputs([data_path]))
     save_bundle(run, KIND, model.state_dict(), to_dict(cfg), prov,
-                extra={**meta, "text_dim": text_dim, "dataset": str(data_path),
+                extra={**meta, "text_dim": text_dim, "dataset": Path(data_path),
                        "dataset_sha256": prov.inputs.get(str(data_path)), "summary": summary})
     summary["model_sha256"] = sha256_state(model.state_dict())
     return summary

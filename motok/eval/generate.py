@@ -31,21 +31,12 @@ def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MCon
     from motok.artifacts import Provenance, command_line
     from motok.data.dataset import write_motion
     from motok.data.skeleton import Skeleton
-    from motok.gpt.sample import generate
-    from motok.gpt.train import load_gpt
-    from motok.text.cache import TextEmbeddingCache
+    from motok.gpt.sample import generate, load_for_sampling
     from motok.tokenizer.tokens import features_to_clip
-    from motok.tokenizer.train import load_tokenizer
 
-    model, meta = load_gpt(gpt)
+    model, meta, tok, tok_meta, tok_run, cache = load_for_sampling(gpt, tokenizer, error=EvaluatorError)
     ex = meta["extra"]
-    tok_run = Path(tokenizer or ex["tokenizer"])
-    tok, tok_meta = load_tokenizer(tok_run)
-    if tok_meta["model_sha256"] != ex["tokenizer_sha256"]:
-        raise EvaluatorError(f"{tok_run} is not the tokenizer {gpt} was trained with")
     tex, rate = tok_meta["extra"], int(ex["rate"])
-    cache_path = Path(ex.get("text_cache", ""))
-    cache = TextEmbeddingCache(cache_path if cache_path.is_file() else None)
     rng = np.random.default_rng([cfg.seed, 7])
     jobs = []  # (text, target tokens or None, labels)
     for s in range(cfg.gen_sets):

@@ -18,6 +18,7 @@ emitted End is fed Pad and ignored while the others go on, and the loop stops wh
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from dataclasses import dataclass
@@ -28,11 +29,14 @@ import torch
 
 from motok import progress as _progress
 from motok.artifacts import Provenance, command_line
+from motok.atomic import check_writable
+from motok.checkpoint import bundle_ref
 from motok.data.dataset import write_motion
 from motok.data.skeleton import Skeleton
 from motok.gpt.model import MotionGPT
 from motok.gpt.train import GPTError, load_gpt
 from motok.text.cache import TextEmbeddingCache
+from motok.text.encoders import get_encoder
 
 
 def filter_logits(logits: torch.Tensor, temperature: float = 1.0, top_k: int | None = None,
@@ -111,6 +115,48 @@ def _numbered(path: Path, names: list[str], k: int) -> Path:
     return path if len(names) == 1 else path.with_name(f"{path.stem}_{names[k]}{path.suffix}")
 
 
+def check_sampling(texts: list[str], *, num_samples: int = 1, temperature: float = 1.0, top_k: int | None = None,
+                   top_p: float | None = None, argmax: bool = False, seconds: float | None = None,
+                   codebook_size: int | None = None) -> None:
+    """Refuse sampling settings that would be silently meaningless, before any work."""
+    if not texts:
+        raise GPTError("no text given: use --text or --texts-file")
+    blank = [i + 1 for i, t in enumerate(texts) if not str(t).strip()]
+    if blank:
+        raise GPTError(f"text {blank[0]} is empty: give a sentence to generate from")
+    if num_samples < 1:
+        raise GPTError(f"--num-samples {num_samples} must be >= 1")
+    if not argmax and not (math.isfinite(temperature) and temperature > 0):
+        raise GPTError(f"--temperature {temperature} must be > 0 (use --argmax for greedy decoding)")
+    if top_k is not None and (top_k < 1 or (codebook_size is not None and top_k > codebook_size)):
+        limit = f"{codebook_size}, the codebook size" if codebook_size is not None else "the codebook size"
+        raise GPTError(f"--top-k {top_k} must be between 1 and {limit}")
+    if top_p is not None and not (0.0 < top_p <= 1.0):
+        raise GPTError(f"--top-p {top_p} must be in (0, 1]")
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise GPTError(f"--seconds {seconds} must be > 0")
+
+
+def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allow_mismatch: bool = False,
+                      error: type[Exception] = GPTError):
+    """The GPT of ``run``, the tokenizer that decodes its codes (``tokenizer`` or the one it was
+    trained with) and its caption cache: ``(model, meta, tok_model, tok_meta, tok_run, cache)``."""
+    from motok.tokenizer.train import load_tokenizer
+
+    run = Path(run)
+    model, meta = load_gpt(run)
+    ex = meta["extra"]
+    tok_run = Path(tokenizer) if tokenizer is not None else bundle_ref(run, meta, "tokenizer",
+                                                                       hint="; pass --tokenizer")
+    tok_model, tok_meta = load_tokenizer(tok_run)
+    if tok_meta["model_sha256"] != ex["tokenizer_sha256"] and not allow_mismatch:
+        raise error(f"{tok_run} is not the tokenizer {run} was trained with (sha256 {tok_meta['model_sha256'][:12]} "
+                    f"vs {ex['tokenizer_sha256'][:12]}); pass --tokenizer or --allow-mismatch")
+    # A missing cache only costs encoding the texts again.
+    cache = TextEmbeddingCache(bundle_ref(run, meta, "text_cache", required=False))
+    return model, meta, tok_model, tok_meta, tok_run, cache
+
+
 def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: int = 1, seed: int = 0,
            temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
            seconds: float | None = None, render: str | Path | None = None, bvh: str | Path | None = None,
@@ -118,24 +164,28 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
            command: str | None = None) -> dict:
     """Sample ``num_samples`` motions per text, decode them into one ``motion`` artifact ``out``,
     and optionally render GIFs/MP4s and BVHs (one per clip, numbered when there are several)."""
+    from motok.render.stick import SUFFIXES
     from motok.tokenizer.tokens import features_to_clip
-    from motok.tokenizer.train import load_tokenizer
 
-    if not texts:
-        raise GPTError("no text given: use --text or --texts-file")
-    if num_samples < 1:
-        raise GPTError("-n must be >= 1")
+    texts = list(texts)
+    opts = dict(num_samples=num_samples, temperature=temperature, top_k=top_k, top_p=top_p, argmax=argmax,
+                seconds=seconds)
+    check_sampling(texts, **opts)
+    check_writable(out)
+    if render is not None:
+        check_writable(render, suffixes=SUFFIXES, what="--render")
+    if bvh is not None:
+        check_writable(bvh, what="--bvh")
     t0 = time.perf_counter()
-    model, meta = load_gpt(run)
+    model, meta, tok_model, tok_meta, tok_run, cache = load_for_sampling(run, tokenizer, allow_mismatch)
     ex = meta["extra"]
-    tok_run = Path(tokenizer or ex["tokenizer"])
-    tok_model, tok_meta = load_tokenizer(tok_run)
-    if tok_meta["model_sha256"] != ex["tokenizer_sha256"] and not allow_mismatch:
-        raise GPTError(f"{tok_run} is not the tokenizer {run} was trained with (sha256 {tok_meta['model_sha256'][:12]} "
-                       f"vs {ex['tokenizer_sha256'][:12]}); pass --tokenizer or --allow-mismatch")
-    cache_path = Path(ex.get("text_cache", ""))
-    cache = TextEmbeddingCache(cache_path if cache_path.is_file() else None)
-    emb = torch.from_numpy(cache.embed(list(texts), ex["text_encoder"], write=False))
+    check_sampling(texts, **opts, codebook_size=int(ex["codebook_size"]))
+    emb = torch.from_numpy(cache.embed(texts, ex["text_encoder"], write=False))
+    truncated = [{"text": i + 1, "tokens": cache.truncated[t]} for i, t in enumerate(texts) if t in cache.truncated]
+    for tr in truncated:  # printed even with --quiet: the motion answers another text than the one given
+        _progress.console.print(f"[yellow]warning:[/] text {tr['text']} is {tr['tokens']} tokens long; the "
+                       f"{ex['text_encoder']} text encoder reads only the first "
+                       f"{get_encoder(ex['text_encoder']).window}, the rest was cut off")
     t_text = time.perf_counter()
 
     rate, fps = int(ex["rate"]), float(tok_meta["extra"]["fps"])
@@ -186,7 +236,7 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
         from motok.data.export import export_bvh
         for k, c in enumerate(clips):
             bvhs.append(str(export_bvh(_numbered(Path(bvh), names, k), c.joints, skeleton, offsets, fps)))
-    return {"output": str(out), "clips": len(clips), "names": names,
+    return {"output": str(out), "clips": len(clips), "names": names, "truncated": truncated,
             "tokens": [len(c) for c in codes], "seconds": [round(len(c) * rate / fps, 2) for c in codes],
             "render": renders, "bvh": bvhs, "time_load_s": round(t_text - t0, 2),
             "time_generate_s": round(t_gen - t_text, 3), "time_decode_write_s": round(t_dec - t_gen, 3),

@@ -33,7 +33,7 @@ import torch.nn.functional as F
 
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind
+from motok.checkpoint import MetricsLog, load_bundle, register_kind, resolve_ref
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
@@ -280,11 +280,14 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
 
     log = MetricsLog(run / "metrics.jsonl", resume_from=start if resume else None) if d.main else None
     end = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
-    extra = {"tokens": str(tokens), "tokens_sha256": inputs[str(tokens)], "tokenizer": str(tok_meta["tokenizer"]),
+    # Path values: stored relative to the run, so the run works from any directory (checkpoint.py).
+    places = resolve_ref(str(tok_meta["tokenizer"]), tokens.parent)
+    tok_run = next((p for p in places if p.exists()), places[0])
+    extra = {"tokens": tokens, "tokens_sha256": inputs[str(tokens)], "tokenizer": tok_run,
              "tokenizer_sha256": str(tok_meta["tokenizer_sha256"]), "codebook_size": K, "codebook": 0,
              "tokenizer_codebooks": int(tok_meta["num_codebooks"]), "rate": int(tok_meta["rate"]),
              "fps": float(tok_meta["fps"]), "text_encoder": cfg.text_encoder, "text_dim": text_dim,
-             "text_cache": str(cache_path), "train_pairs": len(data.pair_clip)}
+             "text_cache": cache_path, "train_pairs": len(data.pair_clip)}
     acc, n_acc, ntok, t_log, last = {}, 0, 0, time.perf_counter(), {}
 
     def save(it: int):
@@ -346,4 +349,8 @@ def _load(tokens: Path, cfg: TrainConfig, cache_path: Path, write: bool = True):
             val = load_code_data(tokens, cfg.val_split, cfg.text_encoder, cache)
         except GPTError:
             val = None  # no such split (small sets): train without a validation loss
+    if cache.truncated:
+        first = next(iter(cache.truncated))
+        _progress.info(f"[yellow]note:[/] {len(cache.truncated)} caption(s) are longer than the {cfg.text_encoder} "
+                       f"encoder reads and were cut off, e.g. {first[:60]!r}")
     return data, val

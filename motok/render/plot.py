@@ -9,7 +9,7 @@ import warnings
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
-from motok.atomic import atomic_path
+from motok.atomic import atomic_path, check_writable
 from motok.errors import MissingFileError, UserError
 
 
@@ -18,24 +18,35 @@ def _is_number(v) -> bool:
 
 
 def read_metrics(path: str | os.PathLike) -> list[dict]:
-    """The JSON objects of a JSONL file; malformed or non-object lines are skipped with a warning."""
+    """The JSON objects of a JSONL file; malformed or non-object lines are skipped with a warning
+    (a run killed mid-write leaves half a line), but a file with no object at all is refused."""
     if not Path(path).is_file():
         raise MissingFileError(f"{path}: no such file")
-    records = []
-    with open(path, encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError as e:
-                warnings.warn(f"{path}: line {lineno}: skipping malformed JSON ({e.msg})", stacklevel=2)
-                continue
-            if not isinstance(rec, dict):
-                warnings.warn(f"{path}: line {lineno}: skipping a {type(rec).__name__}, expected an object",
-                              stacklevel=2)
-                continue
-            records.append(rec)
+    with open(path, "rb") as fh:
+        if fh.read(8) == b"\x89HDF\r\n\x1a\n":
+            raise UserError(f"{path}: an HDF5 artifact, not a metrics log; give a run folder or its metrics.jsonl "
+                            f"(`motok info` describes artifacts)")
+    records, bad = [], []
+    try:
+        with open(path, encoding="utf-8") as fh:
+            for lineno, line in enumerate(fh, 1):
+                if not line.strip():
+                    continue
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError as e:
+                    bad.append(f"line {lineno}: malformed JSON ({e.msg})")
+                    continue
+                if not isinstance(rec, dict):
+                    bad.append(f"line {lineno}: a {type(rec).__name__}, expected an object")
+                    continue
+                records.append(rec)
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a metrics log (JSON lines expected, found binary data)") from None
+    if bad and not records:
+        raise UserError(f"{path}: not a metrics log (one JSON object a line expected; {bad[0]})")
+    for b in bad:
+        warnings.warn(f"{path}: {b}: skipped", stacklevel=2)
     return records
 
 
@@ -85,9 +96,20 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     else:
         records = [dict(r) for r in jsonl_path_or_records]
         source = "records"
+    available = list(dict.fromkeys(k for r in records for k, v in r.items() if _is_number(v)))
     if keys is None:
-        keys = list(dict.fromkeys(k for r in records for k, v in r.items() if k != x and _is_number(v)))
+        keys = [k for k in available if k != x]
     keys = list(keys)
+    unknown = [k for k in keys if k not in available]
+    if unknown:
+        raise UserError(f"{source}: no metric {', '.join(map(repr, unknown))} in the log; it has: "
+                        f"{', '.join(available) or '(nothing numeric)'}")
+    for name, key in (("--x", x), ("--x2", x2)):
+        # Without an iteration field the record number is the x axis (documented); any other
+        # field must be there, or the plot would silently show something else.
+        if key and key not in available and not (name == "--x" and key == "iteration"):
+            raise UserError(f"{source}: {name} {key!r} is not a numeric field of the log; it has: "
+                            f"{', '.join(available) or '(nothing numeric)'}")
     series = {}
     for k in keys:
         pts = [(r[x] if _is_number(r.get(x)) else i, r[k], i) for i, r in enumerate(records) if _is_number(r.get(k))]
@@ -149,5 +171,9 @@ def plot_run(run_or_jsonl: str | os.PathLike, out_png: str | os.PathLike | None 
     :func:`plot_curves` to ``out_png`` (default: ``curves.png`` beside the metrics)."""
     src = Path(run_or_jsonl)
     if src.is_dir():
+        if not (src / "metrics.jsonl").is_file():
+            raise UserError(f"{src}: not a run folder (it has no metrics.jsonl)")
         src = src / "metrics.jsonl"
-    return plot_curves(src, Path(out_png) if out_png is not None else src.with_name("curves.png"), keys, x, **kw)
+    out = Path(out_png) if out_png is not None else src.with_name("curves.png")
+    check_writable(out, suffixes=(".png",))
+    return plot_curves(src, out, keys, x, **kw)

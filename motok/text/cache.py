@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from motok.artifacts import Provenance, command_line, open_artifact, read_strings, write_artifact, write_strings
-from motok.text.encoders import get_encoder
+from motok.text.encoders import get_encoder, overlong
 
 KIND = "text-embeddings"
 
@@ -29,6 +29,7 @@ class TextEmbeddingCache:
         self.path = Path(path) if path is not None else None
         self.table: dict[str, dict[str, np.ndarray]] = {}
         self.hits = self.misses = 0
+        self.truncated: dict[str, int] = {}  # text -> its length in encoder tokens, past the window
         if self.path is not None and self.path.exists():
             with open_artifact(self.path, KIND) as f:
                 for name, g in f["encoders"].items():
@@ -47,7 +48,9 @@ class TextEmbeddingCache:
         self.misses += len(missing)
         self.hits += len(texts) - len(missing)
         if missing:
-            vecs = get_encoder(encoder).encode(missing)
+            enc = get_encoder(encoder)
+            self.truncated.update(overlong(enc, missing))
+            vecs = enc.encode(missing)
             known.update(zip(missing, vecs.astype(np.float32)))
             if write and self.path is not None:
                 self.save()

@@ -60,6 +60,10 @@ class MiniLMEncoder:
         self.model = SentenceTransformer(str(path), device=device)
         self.model.eval()
         self.batch_size = batch_size
+        self.window = int(self.model.max_seq_length)  # word pieces, [CLS] and [SEP] included
+
+    def lengths(self, texts: list[str]) -> list[int]:
+        return [len(ids) for ids in self.model.tokenizer(list(texts), add_special_tokens=True)["input_ids"]]
 
     def encode(self, texts: list[str]) -> np.ndarray:
         out = self.model.encode(list(texts), batch_size=self.batch_size, normalize_embeddings=True,
@@ -77,6 +81,7 @@ class ClipEncoder:
 
     name = "clip"
     dim = 512
+    window = 77  # BPE tokens, start and end of text included
 
     def __init__(self, device: str = "cpu"):
         import torch
@@ -91,6 +96,7 @@ class ClipEncoder:
             import clip  # OpenAI's package, or clip-anytorch which installs the same module
             self.model, _ = clip.load(str(weights), device=device, jit=False)
             self.tokenize = lambda t: clip.tokenize(t, truncate=True)
+            self._bpe = getattr(clip, "_tokenizer", None)
         except ImportError:
             try:
                 import open_clip
@@ -100,7 +106,13 @@ class ClipEncoder:
             self.model, _, _ = open_clip.create_model_and_transforms("ViT-B-32", pretrained=str(weights),
                                                                      device=device)
             self.tokenize = open_clip.get_tokenizer("ViT-B-32")
+            self._bpe = getattr(getattr(open_clip, "tokenizer", None), "_tokenizer", None)
         self.model.eval()
+
+    def lengths(self, texts: list[str]) -> list[int]:
+        if self._bpe is None:
+            return [0] * len(texts)  # this CLIP package does not expose its tokenizer: nothing to say
+        return [len(self._bpe.encode(t)) + 2 for t in texts]
 
     def encode(self, texts: list[str]) -> np.ndarray:
         torch = self._torch
@@ -116,6 +128,7 @@ class HashedBagOfWords:
     """Deterministic hashed counts of words and adjacent word pairs, L2-normalized."""
 
     name = "bow"
+    window = None  # reads every word
 
     def __init__(self, dim: int = 256):
         self.dim = dim
@@ -136,6 +149,15 @@ class HashedBagOfWords:
             if n > 0:
                 out[i] /= n
         return out
+
+
+def overlong(encoder, texts: list[str]) -> dict[str, int]:
+    """The texts longer than ``encoder`` reads (its ``window``), with their length in its tokens:
+    the encoder silently drops what is past the window."""
+    window = getattr(encoder, "window", None)
+    if not window or not texts:
+        return {}
+    return {t: n for t, n in zip(texts, encoder.lengths(list(texts))) if n > window}
 
 
 ENCODERS = {"minilm": MiniLMEncoder, "clip": ClipEncoder, "bow": HashedBagOfWords}

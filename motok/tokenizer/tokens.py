@@ -18,6 +18,7 @@ import torch
 from motok import progress as _progress
 from motok.artifacts import (ArtifactError, Provenance, command_line, hash_inputs, open_artifact, provenance_of,
                              read_strings, write_artifact, write_strings)
+from motok.checkpoint import relative_to
 from motok.data.dataset import Clip, MotionFile, write_motion
 from motok.data.skeleton import Skeleton
 from motok.features.humanml3d import recover_from_ric, recover_local_quats
@@ -26,8 +27,9 @@ from motok.tokenizer.train import TokenizerError, load_tokenizer
 KIND = "tokens"
 
 
-def _tokenizer_id(run: Path, meta: dict) -> dict:
-    return {"tokenizer": str(run), "tokenizer_sha256": meta["model_sha256"],
+def _tokenizer_id(run: Path, meta: dict, out: Path) -> dict:
+    # Relative to the tokens file, as bundles store their references (motok.checkpoint).
+    return {"tokenizer": relative_to(run, Path(out).parent), "tokenizer_sha256": meta["model_sha256"],
             "tokenizer_config": json.dumps(meta["config"], sort_keys=True)}
 
 
@@ -85,7 +87,7 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
         remap = {i: k for k, (i, _) in enumerate(kept)}
         sel = [r for r in range(len(cap["clip"])) if int(cap["clip"][r]) in remap]
         with write_artifact(out, KIND, prov) as f:
-            for k, v in {**_tokenizer_id(run, meta), "rate": rate, "num_codebooks": m,
+            for k, v in {**_tokenizer_id(run, meta, Path(out)), "rate": rate, "num_codebooks": m,
                          "codebook_size": int(model.quantizer.codebook_size), "fps": mf.fps,
                          "num_joints": int(mf.skeleton.num_joints), "feature_dim": model.feature_dim,
                          "source": str(data), "source_sha256": prov_in[str(data)]}.items():

@@ -269,7 +269,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
     frames_per_it = cfg.batch_size * cfg.window
     acc: dict[str, float] = {}
     n_acc, t_log, last = 0, time.perf_counter(), {}
-    dev_meta = {**data.meta, "dataset": str(data_path), "dataset_sha256": data_hash,
+    dev_meta = {**data.meta, "dataset": Path(data_path), "dataset_sha256": data_hash,
                 "stats_split": "train", "rate": model.rate, "num_codebooks": model.num_codebooks,
                 "codebook_size": int(model.quantizer.codebook_size), "code_dim": int(model.quantizer.dim)}
 

@@ -1,0 +1,82 @@
+"""``motok control distill`` (the latent priors, distilled online from an expert) and ``motok
+control eval --task imitation --prior`` (how well a distilled prior imitates). Arguments only; the
+work is in ``motok.control.distill`` and ``motok.control.prior_eval``. :func:`register` adds the
+commands to the ``motok control`` app."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from motok.cli.common import JsonOut, Resume, Sets, data_option, input_option, output_option, recipe_option, report, run
+from motok.cli.conventions import examples
+
+PRIORS = "continuous | discrete | discrete+ | hybrid | hybrid-vq"
+
+
+def distill_cmd(
+    expert: Path = input_option("--expert", help="A control-expert run folder (the frozen teacher)."),
+    prior: str = typer.Option(..., "--prior", help=f"The bottleneck: {PRIORS}."),
+    out: Path = output_option(help="Prior folder (checkpoint bundle, metrics.jsonl).", folder=True),
+    recipe: Optional[Path] = recipe_option("recipes/control/prior_*.yaml"),
+    sets: list[str] = Sets,
+    data: Optional[Path] = data_option("Dataset (default: the one the expert was trained on).", required=False),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the expert's "
+                                        "clips)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
+    resume: bool = Resume,
+    until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the weight schedules "
+                                        "still span the recipe's iterations; --resume continues)."),
+    as_json: bool = JsonOut,
+):
+    """Distil the expert into a latent prior: the student acts, the expert labels (DAgger), Eq. 6."""
+    from motok.config import load_config
+    from motok.control.distill import DistillConfig, train_from_expert
+
+    cfg = run(load_config, DistillConfig, recipe, sets)
+    summary = run(train_from_expert, cfg, expert, out, prior=prior, data=data, clips=clips, split=split,
+                  resume=resume, until=until)
+    report(summary, as_json, f"control distill {prior}")
+
+
+def eval_cmd(
+    prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`)."),
+    task: str = typer.Option("imitation", "--task", help="The task to evaluate on: imitation."),
+    data: Optional[Path] = data_option("Dataset (default: the one it was distilled on).", required=False),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
+                                        "distillation clips)."),
+    split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test)."),
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Decode with the first M codebooks only "
+                                            "(residual priors; default: all)."),
+    render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
+                                           suffixes=(".mp4", ".gif"), required=False),
+    termination: Optional[str] = typer.Option(None, "--termination",
+                                              help="Failure test: 'any' body or the 'mean' (default: the prior's)."),
+    distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the prior's)."),
+    as_json: bool = JsonOut,
+):
+    """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors of the distilled policy."""
+    from motok.control.prior_eval import evaluate_prior
+
+    res = run(evaluate_prior, prior, task=task, data=data, clips=clips, split=split, codebooks=codebooks,
+              render=render, termination=termination, distance=distance)
+    o = res["overall"]
+    summary = {"prior": str(prior), "kind": res["checkpoint"]["prior"]["kind"], "codebooks": res["checkpoint"]["codebooks"],
+               **{k: o[k] for k in ("clips", "success_rate", "success_rate_any_body", "seconds_played", "mpjpe_mm",
+                                    "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm")}, "written": res["written"]}
+    if as_json:
+        res.pop("provenance")
+    report(res if as_json else summary, as_json, f"control eval {task} ({o['termination']} ends a clip)")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("distill", epilog=examples(
+        "motok control distill --expert runs/expert --prior hybrid --recipe recipes/control/prior_hybrid.yaml "
+        "-o runs/prior_hybrid",
+        "motok control distill --expert runs/expert --prior hybrid --recipe recipes/control/prior_hybrid.yaml "
+        "-o runs/prior_hybrid --resume --until 1000"))(distill_cmd)
+    app.command("eval", epilog=examples(
+        "motok control eval --task imitation --prior runs/prior_hybrid --split test",
+        "motok control eval --task imitation --prior runs/prior_hybrid --codebooks 1 --json"))(eval_cmd)

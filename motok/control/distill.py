@@ -1,0 +1,330 @@
+"""Online distillation of a latent prior from the frozen expert (hybrid-latent paper section
+4.3.1, Eq. 6): ``motok control distill``.
+
+Per iteration the student (:class:`motok.control.priors.LatentPrior`) acts in the batched
+imitation MDP with its own actions on the current-pose base, the expert labels every visited
+state (:mod:`motok.control.dagger`: DAgger, with the label conversion), and a supervised update
+over minibatches minimises Eq. 6,
+
+    L = 10 ||a - a_label||^2 + alpha L_reg + beta L_commit + gamma L_mm  (+ w_kl KL(q || p))
+
+with ``L_reg`` the change of the latents between neighbouring steps of one episode (continuous:
+the posterior mean; discrete, discrete+: ``z_bar``; hybrid: ``||y_bar - y_bar'||^2 + ||z_p -
+z_p'||^2``), ``alpha`` 0.005 (continuous) or 0.05 (the others), ``beta`` 1, and ``gamma`` (L_mm,
+hybrids) and ``w_kl`` (continuous) ramped linearly from 0.1 to 1.0 and 0.05 to 0.5 over the first
+12.5 % of the iterations (the authors' schedule). Minibatches are sets of whole environment
+columns, so both steps of every neighbouring pair are in the same forward pass.
+
+The runner (:mod:`motok.control.runner`) does seeding, checkpoints and exact resume, metrics,
+provenance, the MJCF copy and hash, and torchrun. The bundle (kind ``control-prior``) records the
+expert it was distilled from (path relative to the bundle and absolute), the prior's kind, sizes
+and codebooks.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from motok.checkpoint import CheckpointError, bundle_ref, read_meta, register_kind
+from motok.config import from_dict
+from motok.control import runner
+from motok.control.clips import select_clips
+from motok.control.dagger import DaggerBatch, DaggerCollector, StudentPolicy
+from motok.control.evaluate import eval_metrics, evaluate, subset
+from motok.control.expert import KIND as EXPERT_KIND, imitation_mdp, load_expert, split_state
+from motok.control.mdp.actions import ActionConfig
+from motok.control.networks import ActorCritic
+from motok.control.ppo import average_gradients, world_size
+from motok.control.priors import KINDS, LatentPrior, Latents, PriorConfig, squared_norm
+from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.distributed import Dist
+from motok.errors import UserError
+from motok.sim.env import SimConfig
+from motok.sim.humanoid import Humanoid, load_humanoid
+from motok.sim.reference import ReferenceLibrary
+
+KIND = "control-prior"
+register_kind(KIND, (1,))
+REG_DEFAULT = {"continuous": 0.005}  # alpha of Eq. 6 when the recipe leaves it unset; 0.05 otherwise
+BAR = (("act", "action_loss", "{:.3g}"), ("commit", "commit_loss", "{:.3g}"), ("usage", "code_usage", "{:.2f}"),
+       ("len", "episode_seconds", "{:.2f}s"), ("succ", "success", "{:.2f}"))
+SUMMARY = ("action_loss", "rollout_action_err", "commit_loss", "mm_loss", "reg_loss", "kl_loss", "code_usage",
+           "episode_seconds", "success", "r_im", "samples_per_s")
+
+
+@dataclass
+class WeightSchedule:
+    start: float = 0.0
+    end: float = 0.0
+    ramp: float = 0.125  # share of the iterations over which the weight moves linearly from start to end
+
+    def at(self, iteration: int, total: int) -> float:
+        n = self.ramp * total
+        return self.end if n <= 0 else self.start + (self.end - self.start) * min(iteration / n, 1.0)
+
+
+@dataclass
+class LossConfig:
+    action: float = 10.0  # weight of ||a - a_label||^2
+    commit: float = 1.0  # beta
+    reg: float | None = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
+    mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
+    kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
+
+
+@dataclass
+class DistillConfig:
+    seed: int = 0
+    iterations: int = 3000
+    save_every: int = 50
+    eval_every: int = 0  # iterations between imitation evaluations of the student, logged as eval_*
+    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every clip)
+    eval_batch: int = 256
+    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
+    update_threads: int = 0  # during the supervised update, while the physics is idle (0: torch_threads)
+    horizon: int = 32  # steps per environment per iteration
+    epochs: int = 4  # passes over each iteration's data
+    minibatch_size: int = 1024  # samples; rounded down to whole environment columns of `horizon` steps
+    lr: float = 2e-4  # the authors' distillation learning rate
+    max_grad_norm: float = 1.0
+    action_noise: float = 0.055  # std of the noise on the student's actions while collecting (rad)
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
+    task: ImitationTaskConfig = field(default_factory=lambda: ImitationTaskConfig(termination="mean"))
+    action: ActionConfig = field(default_factory=lambda: ActionConfig("current"))
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+
+def latent_change(latents: list[torch.Tensor], horizon: int, done: torch.Tensor) -> torch.Tensor:
+    """``L_reg``: for each latent ``(T * n, d)`` (rows step-major), the mean over neighbouring
+    steps of one episode (pairs ``(t, t + 1)`` with ``done[t]`` false) of ``||l_{t+1} - l_t||^2``,
+    summed over the latents."""
+    keep = ~done[:-1]
+    total = latents[0].new_zeros(())
+    if not keep.any():
+        return total
+    for lat in latents:
+        v = lat.view(horizon, -1, lat.shape[-1])
+        total = total + squared_norm(v[1:] - v[:-1])[keep].mean()
+    return total
+
+
+def distill_loss(out: Latents, labels: torch.Tensor, horizon: int, done: torch.Tensor,
+                 w: dict[str, float]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Eq. 6 for one minibatch of whole environment columns (rows step-major, ``done`` ``(T, n)``):
+    the weighted sum and its unweighted terms. A gradient-learned codebook's own loss (zero for
+    the EMA kinds) joins with weight 1, VQ-VAE's."""
+    L = out.losses
+    terms = {"action_loss": squared_norm(out.action - labels).mean(), "reg_loss": latent_change(out.reg, horizon, done),
+             "commit_loss": L["commit"], "mm_loss": L["mm"], "kl_loss": L["kl"]}
+    total = (w["action"] * terms["action_loss"] + w["reg"] * terms["reg_loss"] + w["commit"] * L["commit"]
+             + L["codebook"] + w["mm"] * L["mm"] + w["kl"] * L["kl"])
+    return total, terms
+
+
+class DistillTrainer:
+    """DAgger collection + Eq. 6 update; one ``step`` is one iteration (the runner's Trainer)."""
+
+    def __init__(self, cfg: DistillConfig, hum: Humanoid, lib: ReferenceLibrary, expert_cfg, expert: ActorCritic,
+                 d: Dist | None = None):
+        d = d or Dist()
+        cfg.prior.check()
+        if cfg.action.base != "current":
+            raise UserError("a latent prior acts without a reference: action.base must be 'current'")
+        if cfg.task.goal_frames != expert_cfg.task.goal_frames:
+            raise UserError(f"task.goal_frames={cfg.task.goal_frames} but the expert was trained with "
+                            f"{expert_cfg.task.goal_frames}: the goal must be the one the expert reads")
+        if getattr(cfg.env, "groups", 1) != 1:
+            raise UserError("distillation steps its environments as one group: env.groups must be 1")
+        self.cfg, self.hum, self.lib = cfg, hum, lib
+        torch.manual_seed(cfg.seed)  # the same initial weights on every rank (the runner reseeds ranks > 0 after)
+        self.mdp = m = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, runner.rank_seed(cfg.seed, d.rank))
+        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim)
+        self.expert = expert.eval().requires_grad_(False)
+        if expert.norm.mean.shape[0] != m.obs_dim + m.goal_dim:
+            raise UserError(f"the expert reads {expert.norm.mean.shape[0]} inputs, the task gives "
+                            f"{m.obs_dim + m.goal_dim}: another humanoid or goal?")
+        self.params = list(self.model.parameters())  # the normaliser and EMA codebooks are buffers
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr)
+        self.collector = DaggerCollector(m, self.model, self.expert, expert_cfg.action, cfg.horizon,
+                                         cfg.action_noise, cfg.action.scale)
+        self.alpha = cfg.loss.reg if cfg.loss.reg is not None else REG_DEFAULT.get(cfg.prior.kind, 0.05)
+        self.samples_per_iteration = cfg.horizon * m.num_envs * d.world
+        self.iteration, self.samples, self.wall = 0, 0, 0.0
+
+    # ------------------------------------------------------------------ state
+    def model_state(self) -> dict[str, torch.Tensor]:
+        return {f"model.{k}": v for k, v in self.model.state_dict().items()}
+
+    def train_state(self) -> dict:
+        return {"iteration": self.iteration, "samples": self.samples, "wall": self.wall, "opt": self.opt.state_dict()}
+
+    def rank_state(self) -> dict:
+        return {"task_rng": json.dumps(self.mdp.task.rng.bit_generator.state)}
+
+    def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
+        self.model.load_state_dict(split_state(model, "model."))
+        if shared is None:
+            return
+        self.iteration, self.samples, self.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
+        self.opt.load_state_dict(shared["opt"])
+        self.mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+
+    def start_segment(self) -> None:
+        self.collector.start()
+
+    def spec(self) -> dict:
+        e, m = self.mdp.env, self.hum.model
+        return {"obs_dim": e.obs_dim, "goal_dim": self.mdp.goal_dim, "action_dim": e.action_dim,
+                "action": {"kind": "residual PD target offsets (rad): q_hat = q + scale * a", "base": "current",
+                           "scale": self.cfg.action.scale, "actuators": list(self.hum.layout.hinge_names),
+                           "ctrl_range": m.actuator_ctrlrange.tolist()},
+                "observation": "posterior: Eq. 7 s then Eq. 9 goal; prior and decoder: s; normalised by "
+                               "model.norm.{mean,var,count} (the first obs_dim entries for s)",
+                "normaliser": ["model.norm.mean", "model.norm.var", "model.norm.count"],
+                "control_hz": e.control_hz, "prior": self.model.spec(), "clips": list(self.lib.names)}
+
+    # ------------------------------------------------------------------ one iteration
+    def weights(self) -> dict[str, float]:
+        c, it = self.cfg, self.iteration
+        return {"action": c.loss.action, "reg": self.alpha, "commit": c.loss.commit,
+                "mm": c.loss.mm.at(it, c.iterations), "kl": c.loss.kl.at(it, c.iterations)}
+
+    def update(self, b: DaggerBatch) -> dict:
+        c, model = self.cfg, self.model
+        model.train()
+        T, N = b.labels.shape[:2]
+        n = max(1, min(N, c.minibatch_size // T))
+        w = self.weights()
+        done, synced = b.done, world_size() > 1
+        sums: dict[str, float] = {}
+        steps, reset, active = 0, 0, 0
+        for _ in range(c.epochs):
+            perm = torch.randperm(N)
+            for i in range(0, N - n + 1, n):  # a ragged last minibatch would be noisier: dropped
+                cols = perm[i:i + n]
+                out = model(model.norm(b.x[:, cols].flatten(0, 1)))
+                loss, terms = distill_loss(out, b.labels[:, cols].flatten(0, 1), T, done[:, cols], w)
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if synced:
+                    average_gradients(self.params)
+                gn = torch.nn.utils.clip_grad_norm_(self.params, c.max_grad_norm)
+                self.opt.step()
+                for k, v in {**terms, "loss": loss, "grad_norm": gn}.items():
+                    sums[k] = sums.get(k, 0.0) + float(v.detach())
+                reset += sum(out.stats.get("dead", []))
+                active += out.stats.get("num_active_codebooks", 0)
+                steps += 1
+        keep = {"continuous": ("kl_loss",), "hybrid": ("commit_loss", "mm_loss"),
+                "hybrid-vq": ("commit_loss", "mm_loss")}.get(c.prior.kind, ("commit_loss",))
+        out = {k: v / max(steps, 1) for k, v in sums.items()
+               if k in ("action_loss", "reg_loss", "loss", "grad_norm") or k in keep}
+        if c.prior.kind in ("hybrid", "hybrid-vq"):
+            out["w_mm"] = w["mm"]
+        elif c.prior.kind == "continuous":
+            out["w_kl"] = w["kl"]
+        if model.quantizer is not None:
+            out.update(codes_reset=reset, active_codebooks=active / max(steps, 1))
+        return out
+
+    def step(self) -> dict:
+        t0 = time.perf_counter()
+        batch, stats = self.collector.collect()
+        t1 = time.perf_counter()
+        with runner.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
+            stats.update(self.update(batch))
+        n = self.samples_per_iteration
+        self.iteration += 1
+        self.samples += n
+        dt = time.perf_counter() - t0
+        self.wall += dt
+        stats.update(iteration=self.iteration, samples=self.samples, wall_s=round(self.wall, 2),
+                     samples_per_s=n / dt, rollout_s=t1 - t0, update_s=dt - (t1 - t0))
+        return stats
+
+
+# ---------------------------------------------------------------------- entry points
+
+def expert_record(expert_run) -> dict:
+    """The expert a prior was distilled from, for the bundle's metadata: ``expert``, a path the
+    bundle stores relative to itself (so the two can move together), and ``expert_info``: its
+    absolute path (found from anywhere on this machine) and what identifies its weights."""
+    meta = read_meta(expert_run, EXPERT_KIND)
+    ex, path = meta["extra"], Path(expert_run).resolve()
+    return {"expert": path, "expert_info": {
+        "absolute": str(path), "model_sha256": meta.get("model_sha256"), "iteration": ex.get("iteration"),
+        "samples": ex.get("samples"),
+        "action": {"base": meta["config"]["action"]["base"], "scale": meta["config"]["action"]["scale"]}}}
+
+
+def expert_path(run, meta: dict) -> Path:
+    """Where the prior bundle ``run``'s expert is: relative to the bundle first, then absolute."""
+    found = bundle_ref(run, meta, "expert", required=False)
+    if found is not None and (found / "bundle.json").exists():
+        return found
+    absolute = Path(meta["extra"]["expert_info"]["absolute"])
+    if (absolute / "bundle.json").exists():
+        return absolute
+    raise CheckpointError(f"{run}: its expert is neither at {meta['extra'].get('expert')!r} (from the bundle) "
+                          f"nor at {absolute}")
+
+
+def train(cfg: DistillConfig, run, expert_run, lib: ReferenceLibrary, *, resume: bool = False,
+          until: int | None = None, data=None, command: str | None = None) -> dict:
+    """Distil the expert in ``expert_run`` into a ``cfg.prior.kind`` prior in ``run`` on the clips of ``lib``."""
+    ecfg, hum, expert, _ = load_expert(expert_run)
+    names = subset(lib.names, cfg.eval_per_group) if cfg.eval_per_group else list(lib.names)
+    ids = np.array([lib.index(x) for x in names])
+
+    def eval_hook(tr: DistillTrainer) -> dict:
+        return eval_metrics(evaluate(hum, StudentPolicy(tr.model), lib, cfg.env, cfg.task, cfg.action, clips=ids,
+                                     batch=cfg.eval_batch))
+
+    return runner.train(lambda d: DistillTrainer(cfg, hum, lib, ecfg, expert, d), cfg, run, hum, kind=KIND,
+                        resume=resume, until=until, data=data, command=command,
+                        extra=expert_record(expert_run), evaluate=eval_hook,
+                        label=f"distill {cfg.prior.kind}", fields=BAR, summary_keys=SUMMARY)
+
+
+def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None = None, data=None,
+                      clips: str | None = None, split: str | None = None, resume: bool = False,
+                      until: int | None = None) -> dict:
+    """``motok control distill``: the prior kind (``prior``, which must agree with the recipe's
+    if it names one), the expert's humanoid and clips (or the clips of ``data`` matching
+    ``clips``/``split``), then :func:`train`."""
+    from motok.sim.reference import load_library
+
+    if prior is not None and prior not in KINDS:
+        raise UserError(f"--prior must be one of {', '.join(KINDS)}, not {prior!r}")
+    if prior and cfg.prior.kind and cfg.prior.kind != prior:
+        raise UserError(f"the recipe is for a {cfg.prior.kind!r} prior, not {prior!r}")
+    cfg.prior.kind = prior or cfg.prior.kind
+    cfg.prior.check()
+    expert_run, run = Path(expert_run), Path(run)
+    emeta = read_meta(expert_run, EXPERT_KIND)
+    if resume and (run / "bundle.json").exists():
+        saved = read_meta(run, KIND)["extra"]["prior"]["kind"]
+        if saved != cfg.prior.kind:
+            raise UserError(f"{run} holds a {saved!r} prior; cannot resume it as {cfg.prior.kind!r}")
+    src = data or bundle_ref(expert_run, emeta, "data", hint=": pass --data")
+    names = select_clips(src, clips, split) if clips or split else emeta["extra"]["clips"]
+    hum = load_humanoid(expert_run / "humanoid.xml")
+    lib = load_library(hum, src, control_hz=cfg.env.control_hz, clips=names)
+    return train(cfg, run, expert_run, lib, resume=resume, until=until, data=src)
+
+
+def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
+    """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""
+    meta, state, hum = runner.load_run(run, KIND)
+    cfg = from_dict(DistillConfig, meta["config"])
+    ex = meta["extra"]
+    model = LatentPrior(cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
+    model.load_state_dict(split_state(state, "model."))
+    return cfg, hum, model.eval(), meta

@@ -1,0 +1,216 @@
+"""The latent motion priors of the hybrid-latent paper (Bae et al. 2025, sections 3-4): one
+posterior-prior-decoder shape, five bottlenecks.
+
+* posterior ``f_phi(s, s~) -> z`` (Eq. 7 observation and Eq. 9 goal, normalised);
+* prior ``f_theta(s) -> z_p`` (the observation only: what task learning keeps);
+* low-level decoder ``pi_low(s, z_bar) -> a``, the residual PD offsets on the current pose.
+
+Kinds (:data:`KINDS`):
+
+* ``continuous`` (PULSE-style, Eq. 1-2): Gaussian posterior and prior (mean and clamped log-std
+  heads), ``z ~ q(z | s, s~)`` by reparameterisation, ``z_bar = z``, ``L_kl = KL(q || p)``.
+* ``discrete`` (NCP-style, Eq. 3-4): ``z_bar = VQ(z)``, one codebook, straight-through; no prior
+  network (task learning picks codes).
+* ``discrete+``: ``z_bar = RVQ(z)``, residual codebooks with quantizer dropout; no prior network.
+* ``hybrid`` (section 4.1, Algorithm 1): the margin ``y = z - sg(z_p)`` is quantized,
+  ``y_bar = RVQ(y)`` (EMA codebooks, dead-code reset, quantizer dropout: section 4.2),
+  ``z_bar = sg(z_p) + y_bar``, and ``L_mm = ||z_bar - z_p||^2`` pulls prior and posterior together.
+* ``hybrid-vq`` (appendix A.1): the hybrid with one VQ codebook instead of RVQ.
+
+Where the gradients go (Algorithm 1): the decoder reads ``z_bar``, whose only path back is the
+straight-through estimator to ``z`` (the posterior); ``z_p`` enters it behind a stop-gradient, so
+the prior learns from ``L_mm`` (and ``L_reg``) only, never from the action loss. Quantizers come
+from :mod:`motok.quantize` (EMA updates and code resets happen inside their training-mode forward).
+
+Conventions, the authors' released code's (their loss weights were tuned with them): squared
+norms are summed over latent dimensions and averaged over rows; the Gaussian KL is averaged over
+latent dimensions; the commitment loss is the quantizer's per-element mean (``motok.quantize``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from motok.control.networks import RunningNorm, mlp
+from motok.errors import UserError
+from motok.quantize.base import QuantizerConfig
+from motok.quantize.registry import build_quantizer
+
+KINDS = ("continuous", "discrete", "discrete+", "hybrid", "hybrid-vq")
+WITH_PRIOR = ("continuous", "hybrid", "hybrid-vq")
+RESIDUAL = ("discrete+", "hybrid")  # residual VQ: several codebooks, decodable with the first M
+
+
+@dataclass
+class PriorConfig:
+    kind: str = ""  # one of KINDS; `motok control distill --prior` sets it
+    latent_dim: int = 64
+    posterior_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    prior_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    activation: str = "elu"
+    log_std_min: float = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
+    log_std_max: float = 1.0
+    num_codebooks: int = 8  # discrete+ and hybrid: residual codebooks
+    codebook_size: int = 128  # codes per residual codebook
+    vq_codebook_size: int = 1024  # discrete and hybrid-vq: the single codebook
+    quantizer: str = "ema_reset"  # how each codebook learns (motok.quantize.vq.VQ_KINDS)
+    decay: float = 0.99  # EMA decay
+    reset_threshold: float = 2.0  # EMA usage below which a code is reset (the authors' code: 2)
+    quantizer_dropout: float = 1.0  # share of training batches that use only M ~ U{1..N} codebooks
+    kmeans_init: bool = True  # codebooks from k-means on the first training batch
+
+    def check(self) -> None:
+        if self.kind not in KINDS:
+            raise UserError(f"prior kind must be one of {', '.join(KINDS)}, not {self.kind!r}")
+        if self.log_std_min > self.log_std_max:
+            raise UserError("prior.log_std_min must not exceed prior.log_std_max")
+
+
+@dataclass
+class Latents:
+    """What one forward pass computed, for rows ``(B, .)``."""
+
+    action: Tensor  # pi_low(s, z_bar): residual PD offsets on the current pose
+    z: Tensor  # posterior latent (continuous: the sample, or the mean when not sampling)
+    z_bar: Tensor  # what the decoder read
+    z_p: Tensor | None  # prior latent (continuous: the prior mean); None without a prior network
+    reg: list[Tensor]  # latents whose change between neighbouring steps L_reg penalises
+    losses: dict[str, Tensor]  # "commit", "codebook", "mm", "kl": zero-dim, unweighted
+    indices: Tensor | None = None  # (B, N) code indices, -1 for codebooks a batch did not use
+    stats: dict = field(default_factory=dict)  # the quantizer's: usage, perplexity, dead, num_active
+
+
+def gaussian_kl(mu_q: Tensor, log_std_q: Tensor, mu_p: Tensor, log_std_p: Tensor) -> Tensor:
+    """Eq. 2's ``KL(q || p)`` per dimension for diagonal Gaussians, in closed form:
+    ``log(s_p / s_q) + (s_q^2 + (mu_q - mu_p)^2) / (2 s_p^2) - 1/2``."""
+    var_q, var_p = torch.exp(2 * log_std_q), torch.exp(2 * log_std_p)
+    return log_std_p - log_std_q + (var_q + (mu_q - mu_p) ** 2) / (2 * var_p) - 0.5
+
+
+def squared_norm(x: Tensor) -> Tensor:
+    """``||x||^2`` per row (summed over the last axis)."""
+    return (x * x).sum(-1)
+
+
+class LatentPrior(nn.Module):
+    """Normaliser + posterior + prior + quantizer + decoder of one :data:`KINDS` entry.
+
+    Inputs of :meth:`forward` are ``[s, s~]`` rows already normalised by :attr:`norm` (the
+    student's own :class:`~motok.control.networks.RunningNorm`, saved with the weights)."""
+
+    def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int):
+        super().__init__()
+        cfg.check()
+        self.cfg, self.kind = cfg, cfg.kind
+        self.obs_dim, self.goal_dim, self.action_dim = obs_dim, goal_dim, action_dim
+        D, act = cfg.latent_dim, cfg.activation
+        gaussian = self.kind == "continuous"
+        self.norm = RunningNorm(obs_dim + goal_dim)
+        # A Gaussian head is one layer giving [mean, log-std]; the others give z itself.
+        self.posterior = mlp([obs_dim + goal_dim, *cfg.posterior_hidden, D * (2 if gaussian else 1)], act)
+        self.prior = mlp([obs_dim, *cfg.prior_hidden, D * (2 if gaussian else 1)], act) \
+            if self.kind in WITH_PRIOR else None
+        self.quantizer = build_quantizer(self.quantizer_config()) if not gaussian else None
+        # out_gain 0.01: the student starts near zero offsets, i.e. holding its pose.
+        self.decoder = mlp([obs_dim + D, *cfg.decoder_hidden, action_dim], act, out_gain=0.01)
+
+    def quantizer_config(self) -> QuantizerConfig:
+        c = self.cfg
+        residual = self.kind in RESIDUAL
+        return QuantizerConfig(kind="rvq" if residual else c.quantizer, rvq_base=c.quantizer,
+                               codebook_size=c.codebook_size if residual else c.vq_codebook_size,
+                               num_codebooks=c.num_codebooks if residual else 1, dim=c.latent_dim, decay=c.decay,
+                               reset_threshold=c.reset_threshold, quantizer_dropout=c.quantizer_dropout,
+                               kmeans_init=c.kmeans_init)
+
+    # ------------------------------------------------------------------ parts
+    def norm_obs(self, s_raw: Tensor) -> Tensor:
+        """The observation ``s`` alone normalised by the student's statistics (task learning has no goal)."""
+        n, d = self.norm, s_raw.shape[-1]
+        y = (s_raw - n.mean[:d].to(s_raw.dtype)) / torch.sqrt(n.var[:d].to(s_raw.dtype) + n.eps)
+        return y.clamp(-n.clip, n.clip)
+
+    def _gaussian(self, head: Tensor) -> tuple[Tensor, Tensor]:
+        mu, log_std = head.chunk(2, -1)
+        return mu, log_std.clamp(self.cfg.log_std_min, self.cfg.log_std_max)
+
+    def prior_latent(self, s: Tensor) -> tuple[Tensor, Tensor | None]:
+        """``z_p = f_theta(s)`` (continuous: ``(mean, log-std)``; else ``(z_p, None)``)."""
+        if self.prior is None:
+            raise UserError(f"the {self.kind} prior has no prior network")
+        head = self.prior(s)
+        return self._gaussian(head) if self.kind == "continuous" else (head, None)
+
+    def decode(self, s: Tensor, z_bar: Tensor) -> Tensor:
+        """``a = pi_low(s, z_bar)``: the low-level policy, from normalised ``s`` and a latent."""
+        return self.decoder(torch.cat([s, z_bar], -1))
+
+    @property
+    def num_codebooks(self) -> int:
+        return 0 if self.quantizer is None else self.quantizer.num_codebooks
+
+    def codebooks(self) -> Tensor:
+        """Every code, ``(N, K, D)`` (detached); the hybrid's are codes of the margin ``y``."""
+        if self.quantizer is None:
+            raise UserError("the continuous prior has no codebooks")
+        return self.quantizer.codebooks()
+
+    # ------------------------------------------------------------------ the forward pass
+    def forward(self, xn: Tensor, num_codebooks: int | None = None, sample: bool = True) -> Latents:
+        """All of Algorithm 1 for normalised ``[s, s~]`` rows: posterior, prior, bottleneck,
+        decoder. In training mode the quantizer also updates its codebooks (EMA, resets) and,
+        for residual kinds, drops all but the first M ~ U{1..N} codebooks (quantizer dropout);
+        ``num_codebooks`` fixes M instead. ``sample`` (continuous): ``z`` drawn from the
+        posterior rather than its mean."""
+        s = xn[..., :self.obs_dim]
+        zero = xn.new_zeros(())
+        losses = {"commit": zero, "codebook": zero, "mm": zero, "kl": zero}
+        head = self.posterior(xn)
+        if self.kind == "continuous":
+            mu_q, log_std_q = self._gaussian(head)
+            mu_p, log_std_p = self.prior_latent(s)
+            z = mu_q + torch.exp(log_std_q) * torch.randn_like(mu_q) if sample else mu_q  # Eq. 1, reparameterised
+            losses["kl"] = gaussian_kl(mu_q, log_std_q, mu_p, log_std_p).mean(-1).mean()  # Eq. 2
+            return Latents(self.decode(s, z), z, z, mu_p, [mu_q], losses)
+        z = head
+        z_p = self.prior_latent(s)[0] if self.prior is not None else None
+        # Hybrid (Algorithm 1): quantize the margin to the prior, which is held fixed here.
+        target = z - z_p.detach() if z_p is not None else z
+        q = self.quantizer(target, num_codebooks)
+        losses["commit"], losses["codebook"] = q.losses["commit"], q.losses["codebook"]
+        if z_p is None:  # discrete (Eq. 3-4) and discrete+: z_bar = VQ(z) or RVQ(z)
+            return Latents(self.decode(s, q.z_q), z, q.z_q, None, [q.z_q], losses, q.indices, q.stats)
+        z_bar = z_p.detach() + q.z_q  # z_bar = sg(z_p) + y_bar: the action loss never reaches the prior
+        losses["mm"] = squared_norm(z_bar - z_p).mean()  # L_mm, section 4.1
+        return Latents(self.decode(s, z_bar), z, z_bar, z_p, [q.z_q, z_p], losses, q.indices, q.stats)
+
+    # ------------------------------------------------------------------ what task learning drives
+    @torch.no_grad()
+    def codes_to_latent(self, s: Tensor, indices: Tensor, num_codebooks: int | None = None) -> Tensor:
+        """``z_bar`` from code indices ``(B, M')`` of the first M codebooks (M' >= M columns;
+        -1 entries skip a codebook): ``z_p(s) + sum of the selected codes`` for the hybrids, the
+        sum of the codes for ``discrete+``, the code for ``discrete``."""
+        if self.quantizer is None:
+            raise UserError("the continuous prior has no codes: use offset_to_latent")
+        m = num_codebooks if num_codebooks is not None else min(indices.shape[-1], self.num_codebooks)
+        codes = self.quantizer.decode(indices[..., :m], m)
+        return codes + self.prior_latent(s)[0] if self.prior is not None else codes
+
+    @torch.no_grad()
+    def offset_to_latent(self, s: Tensor, u: Tensor) -> Tensor:
+        """Continuous task learning: ``z = mu_p(s) + u``, an offset from the prior's mean."""
+        if self.kind != "continuous":
+            raise UserError(f"offset_to_latent is for the continuous prior, not {self.kind!r}")
+        return self.prior_latent(s)[0] + u
+
+    def spec(self) -> dict:
+        """What a bundle records of the model (the sizes a reader needs to rebuild it)."""
+        q = self.quantizer
+        return {"kind": self.kind, "latent_dim": self.cfg.latent_dim, "has_prior": self.prior is not None,
+                "num_codebooks": self.num_codebooks, "codebook_size": q.codebook_size if q is not None else 0,
+                "posterior_hidden": list(self.cfg.posterior_hidden), "prior_hidden": list(self.cfg.prior_hidden),
+                "decoder_hidden": list(self.cfg.decoder_hidden)}

@@ -1,0 +1,318 @@
+"""The latent priors (motok.control.priors) and their online distillation (motok.control.distill,
+motok.control.dagger): where the gradients go, quantizer dropout and decoding from codes, the
+Gaussian KL, the label conversion between action bases, learning, exact resume, the command."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from motok.config import load_config
+from motok.control.dagger import expert_labels
+from motok.control.distill import (DistillConfig, DistillTrainer, WeightSchedule, distill_loss, expert_path,
+                                   latent_change, load_prior, train)
+from motok.control.expert import ExpertConfig, imitation_mdp, load_expert
+from motok.control.expert import train as train_expert
+from motok.control.mdp.actions import ActionConfig, pd_targets
+from motok.control.priors import KINDS, LatentPrior, PriorConfig, gaussian_kl
+from motok.sim.env import SimConfig
+from motok.sim.reference import load_library
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+RECIPES = Path(__file__).resolve().parent.parent / "recipes" / "control"
+QUANTIZED = ("discrete", "discrete+", "hybrid", "hybrid-vq")
+
+
+def small_prior(kind: str, **kw) -> PriorConfig:
+    c = PriorConfig(kind=kind, latent_dim=8, posterior_hidden=[32], prior_hidden=[32], decoder_hidden=[32],
+                    num_codebooks=4, codebook_size=16, vq_codebook_size=32)
+    return replace(c, **kw)
+
+
+def random_model(kind: str, **kw) -> tuple[LatentPrior, torch.Tensor]:
+    torch.manual_seed(0)
+    model = LatentPrior(small_prior(kind, **kw), obs_dim=10, goal_dim=6, action_dim=4)
+    return model, torch.randn(64, 16)
+
+
+@pytest.fixture(scope="module")
+def walk_lib(hum, small_dataset, tmp_path_factory):
+    return load_library(hum, small_dataset, clips=[0, 1, 2], cache_dir=tmp_path_factory.mktemp("prior-ref"))
+
+
+@pytest.fixture(scope="module")
+def tiny_expert(hum, walk_lib, tmp_path_factory) -> Path:
+    """A barely trained expert (2 PPO iterations) on the reference base, as the recipes train it:
+    the student must still learn its labels, ``reference base + a_e - q``, which change with
+    every state."""
+    cfg = ExpertConfig(seed=0, iterations=2, save_every=1000)
+    cfg.env.num_envs, cfg.env.nthread, cfg.ppo.horizon, cfg.ppo.minibatch_size = 8, 1, 16, 64
+    cfg.net.encoder = cfg.net.decoder = cfg.net.value = [64, 64]
+    cfg.net.latent_dim = 16
+    cfg.amp.enabled = False
+    cfg.action.base, cfg.task.termination = "reference", "mean"
+    run = tmp_path_factory.mktemp("tiny-expert") / "expert"
+    train_expert(cfg, run, hum, walk_lib)
+    return run
+
+
+def distill_cfg(kind: str, **kw) -> DistillConfig:
+    cfg = DistillConfig(seed=0, iterations=30, save_every=1000, horizon=16, epochs=4, minibatch_size=128,
+                        action_noise=0.0)
+    cfg.env.num_envs, cfg.env.nthread = 16, 1
+    cfg.task.termination = "mean"
+    cfg.prior = replace(small_prior(kind), latent_dim=16, posterior_hidden=[64, 64], prior_hidden=[64, 64],
+                        decoder_hidden=[64, 64])
+    return replace(cfg, **kw)
+
+
+# ---------------------------------------------------------------------- the models
+
+def test_gaussian_kl_against_the_closed_form():
+    # KL(N(1, 2^2) || N(0, 1)) = log(1 / 2) + (4 + 1) / 2 - 1/2
+    kl = gaussian_kl(torch.tensor(1.0), torch.tensor(math.log(2.0)), torch.tensor(0.0), torch.tensor(0.0))
+    assert float(kl) == pytest.approx(math.log(0.5) + 2.0, rel=1e-6)
+    g = torch.Generator().manual_seed(0)
+    mq, lq, mp, lp = (torch.randn(5, 3, generator=g) for _ in range(4))
+    ref = torch.distributions.kl_divergence(torch.distributions.Normal(mq, lq.exp()), torch.distributions.Normal(mp, lp.exp()))
+    assert torch.allclose(gaussian_kl(mq, lq, mp, lp), ref, atol=1e-5)
+    assert float(gaussian_kl(mq, lq, mq, lq).abs().max()) < 1e-6  # zero between equal Gaussians
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_posterior_receives_the_straight_through_gradient_of_z(kind):
+    model, x = random_model(kind)
+    out = model(x)
+    out.z.retain_grad()
+    w = torch.randn_like(out.z_bar)
+    (out.z_bar * w).sum().backward()
+    assert torch.equal(out.z.grad, w)  # d z_bar / d z = identity, through the quantizer and the margin
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.posterior.parameters())
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "hybrid-vq"])
+def test_the_prior_learns_from_l_mm_and_l_reg_only(kind):
+    model, x = random_model(kind)
+    def grads(term: str) -> tuple[float, float]:
+        model.zero_grad(set_to_none=True)
+        out = model(x)
+        _, terms = distill_loss(out, torch.randn(64, 4), 8, torch.zeros(8, 8, dtype=torch.bool),
+                           {"action": 10.0, "reg": 0.05, "commit": 1.0, "mm": 1.0, "kl": 0.0})
+        terms[term].backward()
+        norm = lambda ps: sum(float(p.grad.abs().sum()) for p in ps if p.grad is not None)  # noqa: E731
+        return norm(model.prior.parameters()), norm(model.posterior.parameters())
+
+    prior, post = grads("action_loss")
+    assert prior == 0.0 and post > 0  # z_p enters the decoder behind a stop-gradient
+    assert grads("commit_loss")[0] == 0.0  # the margin quantized is z - sg(z_p)
+    assert grads("mm_loss")[0] > 0 and grads("reg_loss")[0] > 0
+
+
+def test_the_continuous_prior_learns_from_the_kl_not_the_action():
+    model, x = random_model("continuous")
+    out = model(x)
+    (out.action ** 2).sum().backward()
+    assert all(p.grad is None for p in model.prior.parameters())
+    model.zero_grad(set_to_none=True)
+    model(x).losses["kl"].backward()
+    assert sum(float(p.grad.abs().sum()) for p in model.prior.parameters()) > 0
+    s = x[:, :10]  # x plays the normalised input
+    u = torch.randn(64, 8)
+    assert torch.allclose(model.offset_to_latent(s, u), model.prior_latent(s)[0] + u)  # z = mu_p + u
+    raw = 3 * torch.randn(64, 16) + 1
+    model.norm.update(raw)  # task learning normalises s alone, with the statistics of [s, s~]
+    assert torch.allclose(model.norm_obs(raw[:, :10]), model.norm(raw)[:, :10])
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "discrete+"])
+def test_quantizer_dropout_limits_decoding_to_the_first_m_codebooks(kind):
+    model, x = random_model(kind, quantizer_dropout=1.0)
+    seen = set()
+    for _ in range(30):
+        out = model(x)  # training mode: each batch draws M ~ U{1..4}
+        m = out.stats["num_active_codebooks"]
+        seen.add(m)
+        assert (out.indices[:, m:] == -1).all() and (out.indices[:, :m] >= 0).all()
+    assert seen == {1, 2, 3, 4}
+    model.eval()
+    s = x[:, :10]  # x plays the normalised input
+    full = model(x).indices
+    books = model.codebooks()
+    z_p = model.prior_latent(s)[0] if kind == "hybrid" else torch.zeros(64, 8)
+    for m in range(1, 5):
+        out = model(x, num_codebooks=m)
+        codes = sum(books[i][out.indices[:, i]] for i in range(m))
+        assert torch.allclose(out.z_bar, z_p + codes, atol=1e-6)  # z_bar = z_p + sum of the selected codes
+        assert torch.equal(model.codes_to_latent(s, out.indices, m), out.z_bar)
+        # given all N columns, decoding with the first M reads those only: the residual prefix
+        assert torch.equal(model.codes_to_latent(s, full, m), out.z_bar)
+        assert torch.equal(model.decode(s, model.codes_to_latent(s, out.indices, m)), out.action)
+
+
+@pytest.mark.parametrize("kind", ["discrete", "hybrid-vq"])
+def test_single_codebook_kinds_decode_from_their_code(kind):
+    model, x = random_model(kind)
+    model.eval()
+    out = model(x)
+    s = x[:, :10]  # x plays the normalised input
+    code = model.codebooks()[0][out.indices[:, 0]]
+    expected = code + model.prior_latent(s)[0] if kind == "hybrid-vq" else code
+    assert torch.allclose(model.codes_to_latent(s, out.indices), expected) and torch.equal(out.z_bar, expected)
+
+
+def test_latent_change_covers_neighbouring_steps_of_one_episode():
+    T, n = 3, 2
+    lat = torch.tensor([[0.0], [0.0], [1.0], [5.0], [3.0], [5.0]])  # rows step-major: (t, env)
+    done = torch.tensor([[False, True], [False, False], [False, False]])
+    # env 0: (0 -> 1) + (1 -> 3) = 1 + 4; env 1: its step 0 ended an episode, so only (5 -> 5) = 0
+    assert float(latent_change([lat], T, done)) == pytest.approx((1 + 4 + 0) / 3)
+    assert float(latent_change([lat, 2 * lat], T, done)) == pytest.approx(5 * 5 / 3)
+    assert float(latent_change([lat], T, torch.ones(T, n, dtype=torch.bool))) == 0.0
+
+
+def test_weight_schedules_ramp_linearly_then_hold():
+    s = WeightSchedule(0.1, 1.0, ramp=0.125)
+    assert s.at(0, 800) == pytest.approx(0.1) and s.at(50, 800) == pytest.approx(0.55)
+    assert s.at(100, 800) == pytest.approx(1.0) and s.at(700, 800) == pytest.approx(1.0)
+    assert WeightSchedule(0.1, 1.0, ramp=0.0).at(0, 10) == 1.0
+
+
+def test_prior_recipes_load():
+    for path in sorted(RECIPES.glob("prior_*.yaml")):
+        cfg = load_config(DistillConfig, path)
+        kind = path.stem[len("prior_"):]
+        assert cfg.action.base == "current"
+        if kind == "paper":
+            assert cfg.prior.kind == "" and cfg.prior.codebook_size == 1024 and cfg.prior.vq_codebook_size == 8192
+            m = LatentPrior(replace(cfg.prior, kind="hybrid"), 102, 315, 37)
+            assert m.codebooks().shape == (8, 1024, 64)
+        else:
+            assert cfg.prior.kind == kind, path
+            LatentPrior(cfg.prior, 102, 315, 37)
+    assert {p.stem for p in RECIPES.glob("prior_*.yaml")} == {f"prior_{k}" for k in (*KINDS, "paper")}
+
+
+# ---------------------------------------------------------------------- labels and distillation
+
+def test_the_converted_label_reproduces_the_expert_pd_targets(hum, walk_lib, tiny_expert):
+    ecfg, _, expert, _ = load_expert(tiny_expert)
+    sim = SimConfig(num_envs=8, nthread=1)
+    student = ActionConfig("current", scale=0.5)
+    mdp_e = imitation_mdp(hum, walk_lib, sim, ecfg.task, ecfg.action, seed=3)  # the expert's own MDP
+    mdp_s = imitation_mdp(hum, walk_lib, sim, ecfg.task, student, seed=3)  # the student's, same starts
+    obs, goal = mdp_e.reset()
+    assert np.array_equal(obs, mdp_s.reset()[0])
+    for _ in range(10):
+        x = torch.as_tensor(np.concatenate([obs, goal], 1), dtype=torch.float32)
+        a_e = expert.act(x, deterministic=True)[1].numpy()
+        env = mdp_s.env
+        label = expert_labels(ecfg.action, a_e, env, mdp_s.task, student.scale)
+        want = np.clip(pd_targets(ecfg.action, a_e, mdp_e.env, mdp_e.task), env.ctrl_low, env.ctrl_high)
+        assert ecfg.action.base == "reference" and np.abs(label).max() > 0.05  # a real change of base
+        assert np.abs(pd_targets(student, label, env, mdp_s.task) - want).max() < 1e-12
+        as_f32 = label.astype(np.float32)  # what a float32 student outputs
+        assert np.abs(pd_targets(student, as_f32, env, mdp_s.task) - want).max() < 1e-6
+        obs, goal, _, term, trunc, _ = mdp_e.step(a_e)
+        mdp_s.step(label)
+        assert np.abs(mdp_e.env.qpos - mdp_s.env.qpos).max() < 1e-8  # the same motion
+        if (term | trunc).any():
+            break
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_short_distillation_lowers_the_action_loss(kind, hum, walk_lib, tiny_expert):
+    """30 iterations of 16 envs x 16 steps (7.7k samples) from the barely trained expert: the
+    student's error on the states it visits next (measured before each update) falls."""
+    ecfg, ehum, expert, _ = load_expert(tiny_expert)
+    tr = DistillTrainer(distill_cfg(kind), ehum, walk_lib, ecfg, expert)
+    tr.start_segment()
+    rows = [tr.step() for _ in range(tr.cfg.iterations)]
+    err = [r["rollout_action_err"] for r in rows]
+    fit = [r["action_loss"] for r in rows]
+    first, last = np.mean(err[:3]), np.mean(err[-3:])
+    print(f"{kind}: rollout action error {first:.3f} -> {last:.3f}, fitted {np.mean(fit[:3]):.3f} -> "
+          f"{np.mean(fit[-3:]):.3f}")
+    assert last < 0.6 * first, np.round(err, 3)
+    assert np.mean(fit[-3:]) < 0.6 * np.mean(fit[:3])
+    if kind in QUANTIZED:
+        assert all(0.0 < r["code_usage"] <= 1.0 for r in rows)
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "continuous"])
+def test_distillation_resumes_exactly(kind, hum, walk_lib, tiny_expert, tmp_path):
+    cfg = distill_cfg(kind, iterations=4, save_every=2)
+    cfg.env.num_envs, cfg.horizon, cfg.minibatch_size, cfg.action_noise = 8, 8, 32, 0.05
+    train(replace(cfg, eval_every=2), tmp_path / "straight", tiny_expert, walk_lib)
+    train(cfg, tmp_path / "split", tiny_expert, walk_lib, until=2)
+    train(cfg, tmp_path / "split", tiny_expert, walk_lib, resume=True)
+    a, b = load_file(tmp_path / "straight" / "model.safetensors"), load_file(tmp_path / "split" / "model.safetensors")
+    assert a.keys() == b.keys() and "model.norm.mean" in a
+    for k in a:
+        assert torch.equal(a[k], b[k]), k  # and the evaluations in between changed nothing
+    strip = lambda s: {k: v for k, v in json.loads(s).items() if not k.endswith("_s") and not k.startswith("eval_")}  # noqa: E731
+    la = (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()
+    lb = (tmp_path / "split" / "metrics.jsonl").read_text().splitlines()
+    assert [strip(x) for x in la] == [strip(x) for x in lb]
+    assert ["eval_success" in json.loads(x) for x in la] == [False, True, False, True]
+    # the bundle: kind, the expert (relative path resolving from the bundle), sizes, the MJCF
+    meta = json.loads((tmp_path / "split" / "bundle.json").read_text())
+    ex = meta["extra"]
+    assert meta["kind"] == "control-prior" and ex["prior"]["kind"] == kind and ex["action"]["base"] == "current"
+    assert expert_path(tmp_path / "split", meta).resolve() == tiny_expert.resolve()
+    moved = tmp_path / "elsewhere" / "deeper" / "prior"
+    shutil.copytree(tmp_path / "split", moved)  # the relative path breaks; the absolute one still holds
+    assert expert_path(moved, meta).resolve() == tiny_expert.resolve()
+    assert not Path(ex["expert"]).is_absolute() and "expert" in meta["refs"]
+    assert ex["expert_info"]["absolute"] == str(tiny_expert.resolve()) and ex["expert_info"]["action"]["base"] == "reference"
+    assert ex["prior"]["num_codebooks"] == (4 if kind == "hybrid" else 0)
+    _, phum, model, _ = load_prior(tmp_path / "split")
+    assert len(ex["mjcf_sha256"]) == 64 and Path(phum.path).name == "humanoid.xml"
+    x = torch.randn(5, ex["obs_dim"] + ex["goal_dim"])
+    assert model(model.norm(x), sample=False).action.shape == (5, 37)
+
+
+def test_control_distill_command(small_dataset, tiny_expert, tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+
+    monkeypatch.setenv("MOTOK_CACHE", str(tmp_path / "cache"))
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("iterations: 3\nhorizon: 8\nminibatch_size: 32\nenv: {num_envs: 4, nthread: 1}\n"
+                      "task: {termination: mean}\n"
+                      "prior: {kind: hybrid, latent_dim: 8, posterior_hidden: [16], prior_hidden: [16], "
+                      "decoder_hidden: [16], num_codebooks: 2, codebook_size: 8}\n")
+    out = tmp_path / "prior"
+    base = ["--quiet", "control", "distill", "--expert", str(tiny_expert), "--data", str(small_dataset),
+            "--recipe", str(recipe), "-o", str(out)]
+    r = CliRunner().invoke(app, [*base, "--prior", "hybrid", "--until", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.output)
+    assert summary["iterations"] == 1 and summary["action_loss"] > 0 and 0 < summary["code_usage"] <= 1
+    meta = json.loads((out / "bundle.json").read_text())
+    assert meta["extra"]["iteration"] == 1 and meta["config"]["iterations"] == 3 and (out / "humanoid.xml").exists()
+    for args, says in ((["--prior", "vq-vae"], "--prior must be one of"),
+                       (["--prior", "discrete"], "the recipe is for a 'hybrid' prior")):
+        r = CliRunner().invoke(app, [*base, *args])
+        assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    # the distilled policy on the imitation task, with the first codebook only
+    ev = ["--quiet", "control", "eval", "--task", "imitation", "--prior", str(out), "--data", str(small_dataset),
+          "--clips", "dataset-2_walk_normal_00[12]"]
+    r = CliRunner().invoke(app, [*ev, "--codebooks", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    res = json.loads((out / "eval_m1.json").read_text())
+    o = res["overall"]
+    assert res["kind"] == "control-prior-eval" and o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0
+    assert all(v["seconds"] > 0 for v in res["clips"].values()) and res["checkpoint"]["codebooks"] == 1
+    assert res["checkpoint"]["prior"]["kind"] == "hybrid" and o["g_mpjpe_mm"] > 0
+    for args, says in ((["--task", "steering"], "--task must be one of"), (["--codebooks", "3"], "--codebooks must be in 1..2")):
+        r = CliRunner().invoke(app, [*ev, *args])
+        assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, r.output

@@ -30,7 +30,7 @@ def test_the_walk_sees_every_stage():
     names = {" ".join(path) for path, _ in COMMANDS}
     for expected in ("preprocess", "info", "render", "plot", "export bvh", "tokenize train", "tokenize decode",
                      "gpt sample", "eval t2m", "eval physical", "sim replay", "sim pd-track",
-                     "control expert train", "control expert eval"):
+                     "control expert train", "control expert eval", "control generate", "eval motion-matching"):
         assert expected in names
 
 

@@ -118,3 +118,52 @@ def physical(
     kw = {k: v for k, v in {"contact_tolerance": contact_tolerance, "skate_speed": skate_speed}.items()
           if v is not None}
     report(run(artifact_physical, motion, split, **kw), as_json, "eval physical")
+
+
+@app.command("motion-matching", epilog=examples(
+    "motok eval motion-matching -d runs/bandai2.h5 --split train --motions gen_hybrid_m1.h5 --motions gen_cont.h5 "
+    "-o table1.json -o table1.md",
+    "motok eval motion-matching -d runs/bandai2.h5 --motions gen.h5 --threshold 2.5 --json"))
+def motion_matching(
+    data: Path = data_option("The motion-dataset the generated transitions are matched against."),
+    motions: list[Path] = typer.Option(..., "--motions", metavar="PATH", help="A generated motion artifact, one row "
+                                       "each (repeatable).", callback=existing),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only these clips of --data."),
+    split: Optional[str] = typer.Option(None, "--split", help="Only this split of --data (train, val, test)."),
+    threshold: Optional[float] = typer.Option(None, "--threshold", help="Filter distance (default: derived from "
+                                              "--data, leave-one-clip-out)."),
+    percentile: float = typer.Option(95.0, "--percentile", help="Percentile of the dataset's leave-one-clip-out "
+                                     "distances that is the threshold."),
+    queries: int = typer.Option(20000, "--threshold-queries", help="Dataset transitions the threshold is "
+                                "derived from."),
+    outs: list[Path] = output_option(help="Write the report: all of it to a .json, the table to a .md "
+                                     "(repeatable).", suffixes=(".json", ".md"), required=False, default=[]),
+    as_json: bool = JsonOut,
+):
+    """Table 1: distance to the nearest dataset transition (Eq. 8), filtered rate, coverage, jitter, acceleration."""
+    from motok.eval.motion_matching import COLUMNS, save
+    from motok.eval.motion_matching import motion_matching as _mm
+
+    if sum(p.suffix.lower() == ".json" for p in outs) > 1 or sum(p.suffix.lower() == ".md" for p in outs) > 1:
+        fail("-o takes at most one .json and one .md")
+    rep = run(_mm, data, motions, clips=clips, split=split, threshold=threshold, percentile=percentile,
+              queries=queries)
+    run(save, rep, outs)
+    if as_json:
+        print_json(rep)
+        return
+    from rich.table import Table
+    t = Table(title=f"motion matching against {data}" + (f" ({split})" if split else ""))
+    t.add_column("motion", overflow="fold")
+    for _, header, _ in COLUMNS:
+        t.add_column(header, justify="right")
+    for r in rep["rows"]:
+        t.add_row(str(r["motion"]), *[f.format(r[k]) for k, _, f in COLUMNS])
+    d = rep["dataset"]
+    t.add_row("dataset", str(d["transitions"]), "", "", "", "", f"{d['jitter_m_s3']:.1f}",
+              f"{d['acceleration_m_s2']:.2f}")
+    results.print(t)
+    th = rep["threshold"]
+    results.print(f"threshold {th['value']:.3f} ({th['definition']}); {rep['seconds']} s")
+    for p in outs:
+        results.print(f"wrote {p}", soft_wrap=True, highlight=False)

@@ -1,7 +1,8 @@
-"""``motok control distill`` (the latent priors, distilled online from an expert) and ``motok
-control eval --task imitation --prior`` (how well a distilled prior imitates). Arguments only; the
-work is in ``motok.control.distill`` and ``motok.control.prior_eval``. :func:`register` adds the
-commands to the ``motok control`` app."""
+"""``motok control distill`` (the latent priors, distilled online from an expert), ``motok
+control eval --task imitation --prior`` (how well a distilled prior imitates) and ``motok control
+generate`` (what a prior does on its own). Arguments only; the work is in ``motok.control.distill``,
+``motok.control.prior_eval`` and ``motok.control.generate``. :func:`register` adds the commands to
+the ``motok control`` app."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, Resume, Sets, data_option, input_option, output_option, recipe_option, report, run
+from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, input_option, output_option, recipe_option,
+                              report, results, run)
 from motok.cli.conventions import examples
 
 PRIORS = "continuous | discrete | discrete+ | hybrid | hybrid-vq"
@@ -71,6 +73,41 @@ def eval_cmd(
     report(res if as_json else summary, as_json, f"control eval {task} ({o['termination']} ends a clip)")
 
 
+def generate_cmd(
+    prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`)."),
+    out: Path = output_option(help="The generated motion (.h5, a motion artifact).", suffixes=H5),
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Sample codes from the first M codebooks "
+                                            "(default: all; not for the continuous prior)."),
+    seconds: float = typer.Option(30.0, "--seconds", help="Length of each sample in seconds (a fall ends it "
+                                  "sooner)."),
+    num: int = typer.Option(10, "-n", "--num-samples", help="Number of samples."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the start states and of the code draws."),
+    data: Optional[Path] = data_option("Dataset of the start states (default: the one it was distilled on).",
+                                       required=False),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Start from these clips (default: "
+                                        "the distillation clips)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Start from the clips of this split."),
+    render: Optional[Path] = output_option("--render", help="Video of the first sample (.mp4/.gif).",
+                                           suffixes=(".mp4", ".gif"), required=False),
+    as_json: bool = JsonOut,
+):
+    """Unconditional generation: random codes (or prior draws) at every step from reference start states."""
+    from motok.control.generate import generate
+
+    res = run(generate, prior, out, codebooks=codebooks, seconds=seconds, num_samples=num, seed=seed, data=data,
+              clips=clips, split=split, render=render)
+    per = res.pop("per_sample")
+    if as_json:
+        report({**res, "per_sample": per}, True, "")
+        return
+    report(res, False, "control generate")
+    for name, r in per.items():
+        if r["stopped"]:
+            results.print(f"{name}: {r['stopped']} after {r['seconds']:.2f} s (from {r['start_clip']} frame "
+                          f"{r['start_frame']})" + (f"; {r['error']}" if "error" in r else ""),
+                          soft_wrap=True, highlight=False)
+
+
 def register(app: typer.Typer) -> None:
     app.command("distill", epilog=examples(
         "motok control distill --expert runs/expert --prior hybrid --recipe recipes/control/prior_hybrid.yaml "
@@ -80,3 +117,7 @@ def register(app: typer.Typer) -> None:
     app.command("eval", epilog=examples(
         "motok control eval --task imitation --prior runs/prior_hybrid --split test",
         "motok control eval --task imitation --prior runs/prior_hybrid --codebooks 1 --json"))(eval_cmd)
+    app.command("generate", epilog=examples(
+        "motok control generate --prior runs/prior_hybrid --codebooks 1 --seconds 30 -n 10 -o gen_hybrid_m1.h5 "
+        "--render gen.mp4",
+        "motok control generate --prior runs/prior_continuous -n 100 --seed 1 -o gen_cont.h5 --json"))(generate_cmd)

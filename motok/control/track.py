@@ -58,15 +58,17 @@ def place_on_floor(lib: ReferenceLibrary) -> tuple[ReferenceLibrary, np.ndarray]
     return replace(lib, qpos=qpos, body_pos=body_pos, joints=joints, lowest=lib.lowest + per_frame), shift
 
 
-def _clip(ref: Clip, sim_pos: np.ndarray, control_hz: float, fps: float, skeleton, offsets, legacy: bool,
-          source: str) -> Clip:
-    """The simulated clip, with the reference clip's split, labels and captions (so text metrics apply)."""
+def simulated_clip(name: str, sim_pos: np.ndarray, control_hz: float, fps: float, skeleton, offsets,
+                   legacy: bool, source: str, **clip_fields) -> Clip:
+    """Simulated body positions ``(T, J, 3)`` (MuJoCo frame, at the control rate) as a clip at the
+    motion's rate ``fps``, with features, joints, rotations and root translation recomputed from
+    them, so every motok tool reads it; ``clip_fields``: the Clip's split, labels, captions."""
     pos = from_mj(sim_pos)
     if abs(control_hz - fps) > 1e-6:
         pos = resample_positions(pos, control_hz, fps)
     f = extract_features(pos, skeleton, target_offsets=offsets, fps=fps, legacy=legacy)
-    return Clip(ref.name, f.features, f.joints, f.local_quats, f.root_translation, source=source, source_fps=fps,
-                split=ref.split, labels=ref.labels, captions=ref.captions)
+    return Clip(name, f.features, f.joints, f.local_quats, f.root_translation, source=source, source_fps=fps,
+                **clip_fields)
 
 
 def track(controller, motion, out, *, clips: str | None = None, render=None, batch: int = 256) -> dict:
@@ -109,7 +111,9 @@ def track(controller, motion, out, *, clips: str | None = None, render=None, bat
                          "floor_shift_m": float(shift[i]), "mpjpe_mm": float(mpjpe(p, r).mean()),
                          "g_mpjpe_mm": float(mpjpe(p, r, root_relative=False).mean())}
             if len(p) * fps / hz >= 2:
-                written.append(_clip(refs[name], p, hz, fps, skeleton, offsets, legacy, source=str(motion)))
+                ref = refs[name]  # its split, labels and captions, so text metrics apply to the result
+                written.append(simulated_clip(name, p, hz, fps, skeleton, offsets, legacy, str(motion),
+                                              split=ref.split, labels=ref.labels, captions=ref.captions))
             else:
                 per[name]["error"] = "failed before two frames at the motion's rate were simulated: nothing written"
     for n in short:

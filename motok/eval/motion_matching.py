@@ -1,0 +1,329 @@
+"""Motion matching of generated motion against a dataset (hybrid-latent paper section 6.2,
+Table 1, Eq. 8): how far each generated transition is from the nearest transition of the data,
+how many are too far to be data-like (filtered), and how much of the data is reached (coverage).
+
+**The state** ``s_t`` is computed from joint positions alone, so it exists for every motion
+artifact (a dataset, simulated or kinematic generation) at its frame rate, and is Eq. 7's
+proprioception in the terms joints allow (Eq. 7 itself needs the simulator's hinge angles):
+
+* the root height (1);
+* every other joint relative to the root, in the heading frame (3 (J - 1));
+* the root's linear velocity in the heading frame (3) and its yaw rate (1), backward differences
+  ``(x_t - x_{t-1}) fps``.
+
+The heading is HumanML3D's facing direction (across the hips and shoulders, not smoothed), so
+``s_t`` does not change when a motion is moved or turned on the floor. A transition is
+``(s_t, s_{t+1})``, ``2 (3J + 2)`` values (130 for 21 joints); a clip of T frames has T - 2.
+Motion at another frame rate than the dataset's is resampled to it first.
+
+**Eq. 8.** Every dimension is normalised by the mean and std of the dataset's transitions; the
+distance of a generated transition is the Euclidean distance to its nearest dataset transition
+in that space (exact search: :func:`nearest`).
+
+**Filtered.** A generated transition is filtered when it is farther than a threshold taken from
+the dataset itself: the ``percentile`` (95) of the leave-one-clip-out nearest-neighbour distances
+of dataset transitions (``queries`` of them, 20,000 drawn with a fixed seed, each searched among
+the transitions of every other clip). By construction 5 % of the dataset's own transitions are
+that far from the rest of the data; a generator with a higher filtered rate makes transitions
+the data does not have.
+
+**Coverage.** The share of dataset transitions that are the nearest neighbour of at least one
+generated transition (it grows with the number of generated transitions: compare rows of equal
+size); ``coverage_within_threshold`` counts only matches of transitions that are not filtered.
+
+Also jitter (m/s^3, :mod:`motok.eval.physical`) and acceleration (m/s^2: mean norm of the second
+difference of every joint times fps^2), at each artifact's own frame rate. Importing this
+module costs numpy only; torch is imported by the search.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from motok.errors import UserError
+
+KIND = "motion-matching"
+PERCENTILE = 95.0
+THRESHOLD_QUERIES = 20_000
+CANDIDATES = 4  # per query, re-measured exactly after the matrix-product search (see nearest)
+BLOCK_BYTES = 128 << 20  # per block of distances: 2,048 queries x 16,384 keys in float32
+QUERY_BLOCK = 2048
+STD_FLOOR = 1e-6
+
+
+# --------------------------------------------------------------------------- states
+
+def heading_yaw(joints: np.ndarray, skeleton) -> np.ndarray:
+    """``(T,)`` yaw of the facing direction (radians from +Z towards +X)."""
+    from motok.features.kinematics import forward_direction
+
+    fwd = forward_direction(np.asarray(joints, np.float64), skeleton, smooth=False)
+    return np.arctan2(fwd[:, 0], fwd[:, 2])
+
+
+def _unturn(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Vectors ``(T, ..., 3)`` rotated by ``-yaw`` about +Y (world -> heading frame: forward is +Z)."""
+    c = np.cos(yaw).reshape((-1,) + (1,) * (v.ndim - 2))
+    s = np.sin(yaw).reshape(c.shape)
+    x, z = v[..., 0], v[..., 2]
+    return np.stack([c * x - s * z, v[..., 1], s * x + c * z], -1)
+
+
+def states(joints: np.ndarray, fps: float, skeleton) -> np.ndarray:
+    """``(T - 1, 3J + 2)`` states of frames 1..T-1 of ``(T, J, 3)`` joints (module docstring)."""
+    x = np.asarray(joints, np.float64)
+    if len(x) < 2:
+        return np.zeros((0, 3 * x.shape[1] + 2))
+    yaw = heading_yaw(x, skeleton)
+    root = x[:, 0]
+    rel = _unturn(x[1:, 1:] - root[1:, None], yaw[1:])
+    vel = _unturn(np.diff(root, axis=0) * fps, yaw[1:])
+    turn = (np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi  # wrapped to (-pi, pi]
+    return np.concatenate([root[1:, 1:2], rel.reshape(len(rel), -1), vel, (turn * fps)[:, None]], 1)
+
+
+def transitions(joints: np.ndarray, fps: float, skeleton) -> np.ndarray:
+    """``(T - 2, 2 (3J + 2))`` rows ``(s_t, s_{t+1})``."""
+    s = states(joints, fps, skeleton)
+    return np.concatenate([s[:-1], s[1:]], 1)
+
+
+def acceleration_sum(joints: np.ndarray, fps: float) -> tuple[float, int]:
+    """Sum over frames of the mean joint acceleration norm (m/s^2), and the number of frames."""
+    x = np.asarray(joints, np.float64)
+    if len(x) < 3:
+        return 0.0, 0
+    a = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1).mean(-1) * fps ** 2
+    return float(a.sum()), len(a)
+
+
+@dataclass
+class MotionSet:
+    """The transitions of some clips of one artifact, with the owner clip of every row."""
+
+    path: str
+    names: list[str]
+    x: np.ndarray  # (n, D) float32, not normalised
+    clip: np.ndarray  # (n,) index into names
+    fps: float
+    jitter_m_s3: float
+    acceleration_m_s2: float
+    frames: int
+
+
+def load_set(path, names: list[str] | None = None, fps: float | None = None, skeleton=None) -> MotionSet:
+    """Transitions of the clips ``names`` (all by default) of the motion artifact at ``path``,
+    resampled to ``fps`` when given and different; ``skeleton`` (the dataset's) must match."""
+    from motok.data.dataset import MotionFile
+    from motok.eval.physical import PhysicalSums, clip_sums
+    from motok.features.resample import resample_positions
+
+    with MotionFile(path) as mf:
+        sk, own = mf.skeleton, mf.fps
+        if skeleton is not None and list(sk.joints) != list(skeleton.joints):
+            raise UserError(f"{path}: skeleton {sk.name!r} has other joints than the dataset's {skeleton.name!r}")
+        ids = list(range(len(mf))) if names is None else [mf.index(n) for n in names]
+        off = mf.frame_offsets
+        every = mf.h5["frames"]["joints"][()] if len(ids) > 50 else None  # one read beats thousands
+        rows, owner, kept, phys = [], [], [], PhysicalSums()
+        acc, acc_n, frames = 0.0, 0, 0
+        feet = (tuple(sk.feet_left), tuple(sk.feet_right))
+        for i in ids:
+            j = every[off[i]:off[i + 1]] if every is not None else mf.frames("joints", i)
+            phys.add(clip_sums(j, own, feet))
+            a, n = acceleration_sum(j, own)
+            acc, acc_n, frames = acc + a, acc_n + n, frames + len(j)
+            if fps is not None and abs(fps - own) > 1e-6 and len(j) > 1:
+                j = resample_positions(np.asarray(j, np.float64), own, fps)
+            t = transitions(j, fps or own, sk)
+            if len(t):
+                rows.append(t.astype(np.float32))
+                owner.append(np.full(len(t), len(kept)))
+                kept.append(mf.names[i])
+    if not rows:
+        raise UserError(f"{path}: no clip has the 3 frames a transition needs")
+    return MotionSet(str(path), kept, np.concatenate(rows), np.concatenate(owner), float(fps or own),
+                     phys.result()["jitter_m_s3"], acc / max(acc_n, 1), frames)
+
+
+# --------------------------------------------------------------------------- exact search
+
+def nearest(queries, keys, *, query_groups=None, key_groups=None, candidates: int = CANDIDATES,
+            block_bytes: int = BLOCK_BYTES, query_block: int = QUERY_BLOCK, advance=None):
+    """Exact nearest neighbours: ``(distance (nq,), index (nq,))`` of every query row among the
+    key rows (Euclidean), in blocks of ``query_block`` x ``block_bytes / (4 query_block)`` keys
+    (memory-bounded whatever the sizes). With groups, a key of the query's own group is never
+    its neighbour (leave-one-clip-out); a query with no eligible key gets ``inf`` and -1.
+
+    Each block ranks keys by ``|k|^2 - 2 q.k`` (one matrix product, the query's own norm left
+    out: it does not change the ranking) and keeps its ``candidates`` best; the survivors are
+    then measured exactly as ``||q - k||``. The expansion loses digits when two rows are nearly
+    equal, so ranking by it alone could return a neighbour 1e-3 away instead of an identical row
+    at 0; the re-measurement makes identical rows come out at exactly 0."""
+    import torch
+
+    q = torch.as_tensor(np.asarray(queries, np.float32))
+    k = torch.as_tensor(np.asarray(keys, np.float32))
+    nq, nk = len(q), len(k)
+    if q.shape[1:] != k.shape[1:]:
+        raise ValueError(f"queries have {q.shape[1:]} columns, keys {k.shape[1:]}")
+    grouped = query_groups is not None
+    if grouped:
+        qg, kg = torch.as_tensor(np.asarray(query_groups)), torch.as_tensor(np.asarray(key_groups))
+    kn = (k * k).sum(1)
+    bk = max(1, block_bytes // (4 * query_block))
+    c = max(1, min(candidates, nk))
+    dist, index = torch.empty(nq), torch.empty(nq, dtype=torch.long)
+    inf = float("inf")
+    for a in range(0, nq, query_block):
+        qb = q[a:a + query_block]
+        best_d = torch.full((len(qb), c), inf)
+        best_i = torch.zeros((len(qb), c), dtype=torch.long)
+        for b in range(0, nk, bk):
+            d2 = torch.addmm(kn[b:b + bk][None], qb, k[b:b + bk].T, alpha=-2.0)
+            if grouped:
+                d2.masked_fill_(qg[a:a + query_block, None] == kg[None, b:b + bk], inf)
+            cd, ci = d2.topk(min(c, d2.shape[1]), dim=1, largest=False)
+            md, mi = torch.cat([best_d, cd], 1), torch.cat([best_i, ci + b], 1)
+            best_d, sel = md.topk(c, dim=1, largest=False)
+            best_i = mi.gather(1, sel)
+        exact = (qb[:, None] - k[best_i]).norm(dim=-1).masked_fill_(torch.isinf(best_d), inf)
+        d, j = exact.min(1)
+        dist[a:a + len(qb)] = d
+        index[a:a + len(qb)] = torch.where(torch.isinf(d), -1, best_i.gather(1, j[:, None])[:, 0])
+        if advance is not None:
+            advance(len(qb))
+    return dist.numpy(), index.numpy()
+
+
+def brute_force(queries, keys) -> tuple[np.ndarray, np.ndarray]:
+    """The reference: each query against every key in float64, one query at a time."""
+    k = np.asarray(keys, np.float64)
+    d, i = np.empty(len(queries)), np.empty(len(queries), dtype=np.int64)
+    for r, row in enumerate(np.asarray(queries, np.float64)):
+        e = np.sqrt(((k - row) ** 2).sum(1))
+        i[r] = e.argmin()
+        d[r] = e[i[r]]
+    return d, i
+
+
+# --------------------------------------------------------------------------- the metrics
+
+def normaliser(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std per dimension of the dataset's transitions (std floored at STD_FLOOR)."""
+    x64 = np.asarray(x, np.float64)
+    return x64.mean(0).astype(np.float32), np.maximum(x64.std(0), STD_FLOOR).astype(np.float32)
+
+
+def derive_threshold(x: np.ndarray, groups: np.ndarray, percentile: float = PERCENTILE,
+                     queries: int = THRESHOLD_QUERIES, seed: int = 0, advance=None) -> dict:
+    """The filter threshold: the ``percentile`` of the leave-one-clip-out nearest-neighbour
+    distances of ``queries`` dataset transitions (all of them when there are fewer), drawn with
+    ``seed``, in the normalised space ``x``."""
+    if len(np.unique(groups)) < 2:
+        raise UserError("the threshold needs a dataset of at least two clips (leave-one-clip-out)")
+    n = len(x)
+    sel = np.arange(n) if queries >= n else np.sort(np.random.default_rng(seed).choice(n, queries, replace=False))
+    d, _ = nearest(x[sel], x, query_groups=groups[sel], key_groups=groups, advance=advance)
+    return {"value": float(np.percentile(d, percentile)), "percentile": percentile, "queries": int(len(sel)),
+            "seed": seed, "loco_mean": float(d.mean()), "loco_median": float(np.median(d)),
+            "definition": f"{percentile:g}th percentile of the leave-one-clip-out nearest-neighbour distances of "
+                          f"{len(sel)} dataset transitions"}
+
+
+def match_metrics(dist: np.ndarray, index: np.ndarray, num_data: int, threshold: float) -> dict:
+    """Distance summary, filtered rate and coverage of generated transitions whose nearest
+    dataset transitions (among ``num_data``) are ``index`` at ``dist``."""
+    kept = dist <= threshold
+    return {"transitions": int(len(dist)), "distance_mean": float(dist.mean()),
+            "distance_median": float(np.median(dist)), "distance_p95": float(np.percentile(dist, 95)),
+            "filtered_rate": float(1.0 - kept.mean()),
+            "coverage": float(len(np.unique(index)) / num_data),
+            "coverage_within_threshold": float(len(np.unique(index[kept])) / num_data)}
+
+
+def motion_matching(data, motions, *, clips: str | None = None, split: str | None = None,
+                    threshold: float | None = None, percentile: float = PERCENTILE,
+                    queries: int = THRESHOLD_QUERIES, seed: int = 0) -> dict:
+    """Table 1 for each motion artifact in ``motions`` against the clips of ``data`` (all, or
+    ``split`` / the ``clips`` glob); ``threshold`` skips its derivation. One row per artifact."""
+    from motok.artifacts import Provenance, command_line, hash_inputs
+    from motok.control.clips import select_clips
+    from motok.data.dataset import MotionFile
+    from motok.progress import make_progress
+
+    t0 = time.perf_counter()
+    with MotionFile(data) as mf:
+        skeleton, fps = mf.skeleton, mf.fps
+    names = select_clips(data, clips, split) if clips or split else None
+    ds = load_set(data, names)
+    mean, std = normaliser(ds.x)
+    xd = (ds.x - mean) / std
+    gens = [load_set(p, fps=fps, skeleton=skeleton) for p in motions]
+    out = {"kind": KIND, "schema_version": 1, "data": str(data), "clips": clips, "split": split,
+           "state": "(s_t, s_{t+1}); s = root height, root-relative joints in the heading frame, root velocity "
+                    "in the heading frame, yaw rate (backward differences); each dimension normalised by the "
+                    "dataset's transitions", "transition_dim": int(xd.shape[1]), "fps": fps,
+           "dataset": {"clips": len(ds.names), "transitions": int(len(xd)), "jitter_m_s3": ds.jitter_m_s3,
+                       "acceleration_m_s2": ds.acceleration_m_s2}}
+    with make_progress("transitions") as bar:
+        if threshold is None:
+            task = bar.add_task("threshold (leave-one-clip-out)", total=min(queries, len(xd)))
+            out["threshold"] = derive_threshold(xd, ds.clip, percentile, queries, seed,
+                                                advance=lambda n: bar.advance(task, n))
+        else:
+            out["threshold"] = {"value": float(threshold), "definition": "given (--threshold)"}
+        thr = out["threshold"]["value"]
+        rows = []
+        for g in gens:
+            task = bar.add_task(f"match {g.path}", total=len(g.x))
+            t1 = time.perf_counter()
+            d, i = nearest((g.x - mean) / std, xd, advance=lambda n, t=task: bar.advance(t, n))
+            dt = time.perf_counter() - t1
+            row = {"motion": g.path, "clips": len(g.names), **match_metrics(d, i, len(xd), thr),
+                   "jitter_m_s3": g.jitter_m_s3, "acceleration_m_s2": g.acceleration_m_s2,
+                   "search_s": round(dt, 2), "pairs_per_s": float(len(d) * len(xd) / max(dt, 1e-9))}
+            row["per_clip"] = {n: {"transitions": int((g.clip == c).sum()),
+                                   "distance_mean": float(d[g.clip == c].mean()),
+                                   "filtered_rate": float((d[g.clip == c] > thr).mean())}
+                               for c, n in enumerate(g.names)}
+            rows.append(row)
+    out["rows"] = rows
+    out["seconds"] = round(time.perf_counter() - t0, 2)
+    out["provenance"] = json.loads(Provenance(command=command_line(), config={
+        "clips": clips, "split": split, "threshold": threshold, "percentile": percentile, "queries": queries,
+        "seed": seed, "candidates": CANDIDATES}, inputs=hash_inputs([data, *motions])).to_json())
+    return out
+
+
+def save(rep: dict, paths) -> None:
+    """The whole report to each ``.json`` path, the table (:func:`markdown`) to each ``.md``."""
+    from motok.atomic import atomic_path
+
+    for p in map(Path, paths):
+        with atomic_path(p) as tmp:
+            tmp.write_text(json.dumps(rep, indent=2) if p.suffix.lower() == ".json" else markdown(rep))
+
+
+COLUMNS = (("transitions", "transitions", "{:d}"), ("distance_mean", "distance ↓", "{:.3f}"),
+           ("filtered_rate", "filtered ↓", "{:.1%}"), ("coverage", "coverage ↑", "{:.1%}"),
+           ("coverage_within_threshold", "coverage ≤ thr ↑", "{:.1%}"), ("jitter_m_s3", "jitter m/s³", "{:.1f}"),
+           ("acceleration_m_s2", "accel. m/s²", "{:.2f}"))
+
+
+def markdown(rep: dict) -> str:
+    """The rows as a Markdown table, with the dataset's own jitter and acceleration and the threshold."""
+    head = "| motion | " + " | ".join(c[1] for c in COLUMNS) + " |"
+    lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
+    for r in rep["rows"]:
+        lines.append(f"| {r['motion']} | " + " | ".join(f.format(r[k]) for k, _, f in COLUMNS) + " |")
+    d = rep["dataset"]
+    lines.append(f"| dataset ({rep['data']}) | {d['transitions']} | | | | | {d['jitter_m_s3']:.1f} | "
+                 f"{d['acceleration_m_s2']:.2f} |")
+    t = rep["threshold"]
+    return "\n".join(lines) + f"\n\nThreshold {t['value']:.3f}: {t['definition']}.\n"

@@ -1,0 +1,136 @@
+"""Motion matching (motok.eval.motion_matching, `motok eval motion-matching`): the chunked exact
+search equals brute force, the state is where- and heading-invariant, the threshold and coverage
+count as defined on hand-made examples, dataset transitions are at distance 0 and noise moves
+them away."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from motok.artifacts import Provenance
+from motok.data.dataset import MotionFile, write_motion
+from motok.eval.motion_matching import (brute_force, derive_threshold, match_metrics, motion_matching, nearest,
+                                        states, transitions)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+# ---------------------------------------------------------------------- the search
+
+def test_chunked_exact_search_equals_brute_force():
+    rng = np.random.default_rng(0)
+    keys, queries = rng.normal(size=(3000, 13)), rng.normal(size=(700, 13))
+    want_d, want_i = brute_force(queries, keys)
+    # small blocks: 11 query blocks x 12 key blocks, so every merge path runs
+    d, i = nearest(queries, keys, query_block=64, block_bytes=4 * 64 * 256)
+    assert np.array_equal(i, want_i) and np.allclose(d, want_d, atol=1e-5)
+    assert np.array_equal(nearest(queries, keys)[1], want_i)  # default blocks: one key block
+
+
+def test_identical_rows_are_at_exactly_zero_and_groups_exclude_their_own_rows():
+    rng = np.random.default_rng(1)
+    keys = rng.normal(size=(500, 8)) * 30 + 100  # large norms: where the expansion loses digits
+    d, i = nearest(keys[:200], keys, query_block=50, block_bytes=4 * 50 * 128)
+    assert np.array_equal(d, np.zeros(200)) and np.array_equal(i, np.arange(200))
+    groups = np.arange(500) // 10  # 50 "clips" of 10 rows
+    d, i = nearest(keys, keys, query_groups=groups, key_groups=groups, query_block=64, block_bytes=4 * 64 * 100)
+    full = np.sqrt(((keys[:, None] - keys[None]) ** 2).sum(-1))
+    full[groups[:, None] == groups[None]] = np.inf
+    assert np.array_equal(i, full.argmin(1)) and np.allclose(d, full.min(1), rtol=1e-5)
+    assert (groups[i] != groups).all()
+    one = np.zeros(5, dtype=int)  # a single group: no eligible neighbour
+    d, i = nearest(keys[:5], keys[:5], query_groups=one, key_groups=one)
+    assert np.isinf(d).all() and (i == -1).all()
+
+
+def test_threshold_on_a_small_example():
+    # 1-D transitions in three clips: A = {0, 1}, B = {0.5, 3}, C = {10}. Leave-one-clip-out
+    # nearest neighbours: 0 -> 0.5, 1 -> 0.5, 0.5 -> 0 or 1, 3 -> 1, 10 -> 3: distances
+    # 0.5, 0.5, 0.5, 2, 7.
+    x = np.array([[0.0], [1.0], [0.5], [3.0], [10.0]])
+    groups = np.array([0, 0, 1, 1, 2])
+    for pct, want in ((50, 0.5), (75, 2.0), (100, 7.0), (90, 2 + 0.6 * 5)):
+        t = derive_threshold(x, groups, percentile=pct, queries=100)
+        assert t["value"] == pytest.approx(want) and t["queries"] == 5
+    assert derive_threshold(x, groups, queries=100)["loco_mean"] == pytest.approx(10.5 / 5)
+    sub = derive_threshold(x, groups, percentile=100, queries=3, seed=0)
+    assert sub["queries"] == 3 and sub["value"] in (0.5, 2.0, 7.0)
+
+
+def test_filtered_and_coverage_count_as_defined():
+    data = np.array([[0.0], [1.0], [2.0], [3.0], [20.0]])
+    gen = np.array([[0.1], [0.2], [2.9], [14.0]])
+    d, i = nearest(gen, data)
+    assert i.tolist() == [0, 0, 3, 4] and d == pytest.approx([0.1, 0.2, 0.1, 6.0])
+    m = match_metrics(d, i, len(data), threshold=1.0)
+    assert m["transitions"] == 4 and m["filtered_rate"] == 0.25  # 14 is 6 from the data
+    assert m["coverage"] == 3 / 5  # 0, 3 and 20 are someone's nearest neighbour; 1 and 2 are not
+    assert m["coverage_within_threshold"] == 2 / 5  # 20 only through the filtered transition
+    assert m["distance_mean"] == pytest.approx(6.4 / 4)
+
+
+# ---------------------------------------------------------------------- the state
+
+def test_the_state_does_not_depend_on_where_the_motion_is_or_which_way_it_faces(small_dataset):
+    with MotionFile(small_dataset) as mf:
+        j, sk, fps = mf.frames("joints", 0).astype(np.float64), mf.skeleton, mf.fps
+    a = 2.0
+    rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])  # about +Y
+    moved = j @ rot.T + np.array([3.0, 0.0, -7.0])
+    s, s2 = states(j, fps, sk), states(moved, fps, sk)
+    assert s.shape == (len(j) - 1, 3 * 21 + 2) and np.allclose(s, s2, atol=1e-9)
+    assert np.allclose(s[:, 0], j[1:, 0, 1])  # the root height
+    assert np.allclose(np.linalg.norm(s[:, -4:-1], axis=1), np.linalg.norm(np.diff(j[:, 0], axis=0), axis=1) * fps)
+    t = transitions(j, fps, sk)
+    assert t.shape == (len(j) - 2, 2 * s.shape[1]) and np.array_equal(t[:, s.shape[1]:], s[1:])
+
+
+# ---------------------------------------------------------------------- motion against data
+
+def _noisy(small_dataset, out, sigma: float, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    with MotionFile(small_dataset) as mf:
+        clips = [mf.clip(i) for i in range(len(mf))]
+        sk, offsets, fps, legacy = mf.skeleton, mf.offsets, mf.fps, mf.legacy
+    noisy = [replace(c, joints=c.joints + rng.normal(0, sigma, c.joints.shape).astype(np.float32)) for c in clips]
+    write_motion(out, "motion", Provenance(command="test", config={"sigma": sigma}), noisy, sk, offsets, fps, legacy)
+    return out
+
+
+def test_dataset_transitions_are_at_zero_and_noise_moves_them_away(small_dataset, tmp_path):
+    paths = [small_dataset] + [_noisy(small_dataset, tmp_path / f"n{s}.h5", s) for s in (0.002, 0.01, 0.03)]
+    rep = motion_matching(small_dataset, paths, queries=3000)
+    own, *noisy = rep["rows"]
+    n = rep["dataset"]["transitions"]
+    assert rep["kind"] == "motion-matching" and rep["transition_dim"] == 130 and own["transitions"] == n
+    assert own["distance_mean"] == 0.0 and own["filtered_rate"] == 0.0 and own["coverage"] > 0.999
+    assert 0 < rep["threshold"]["value"] and rep["threshold"]["queries"] == 3000
+    dist = [r["distance_mean"] for r in noisy]
+    assert 0 < dist[0] < dist[1] < dist[2], dist
+    assert noisy[0]["filtered_rate"] <= noisy[1]["filtered_rate"] <= noisy[2]["filtered_rate"]
+    assert noisy[2]["filtered_rate"] > 0.5  # 3 cm of noise per joint and frame is nothing like the data
+    jit = [own["jitter_m_s3"]] + [r["jitter_m_s3"] for r in noisy]
+    acc = [own["acceleration_m_s2"]] + [r["acceleration_m_s2"] for r in noisy]
+    assert jit == sorted(jit) and acc == sorted(acc) and own["jitter_m_s3"] == rep["dataset"]["jitter_m_s3"]
+    assert sum(c["transitions"] for c in own["per_clip"].values()) == n
+
+
+def test_eval_motion_matching_command(small_dataset, tmp_path):
+    from motok.cli.main import app
+
+    gen = _noisy(small_dataset, tmp_path / "gen.h5", 0.01)
+    out_json, out_md = tmp_path / "r.json", tmp_path / "r.md"
+    args = ["--quiet", "eval", "motion-matching", "-d", str(small_dataset), "--motions", str(gen),
+            "--clips", "dataset-2_walk_normal_00*", "--threshold-queries", "500"]
+    r = CliRunner().invoke(app, [*args, "-o", str(out_json), "-o", str(out_md), "--json"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.stdout)
+    assert rep == json.loads(out_json.read_text()) and rep["dataset"]["clips"] == 9
+    assert rep["provenance"]["config"]["queries"] == 500 and "| motion |" in out_md.read_text()
+    r = CliRunner().invoke(app, [*args, "--threshold", "1.5"])
+    assert r.exit_code == 0 and "threshold 1.500" in r.stdout, r.output

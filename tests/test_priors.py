@@ -316,3 +316,9 @@ def test_control_distill_command(small_dataset, tiny_expert, tmp_path, monkeypat
     for args, says in ((["--task", "steering"], "--task must be one of"), (["--codebooks", "3"], "--codebooks must be in 1..2")):
         r = CliRunner().invoke(app, [*ev, *args])
         assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    # the distilled policy as the controller of `motok control track`
+    tr = ["--quiet", "control", "track", "-d", str(small_dataset), "--clips", "dataset-2_walk_normal_001"]
+    r = CliRunner().invoke(app, [*tr, "--prior", str(out), "-o", str(tmp_path / "sim.h5"), "--json"])
+    assert r.exit_code == 0 and json.loads(r.output)["written"] == 1, r.output
+    r = CliRunner().invoke(app, [*tr, "-o", str(tmp_path / "none.h5")])
+    assert r.exit_code == 2 and "one controller" in r.output

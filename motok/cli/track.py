@@ -15,7 +15,12 @@ from motok.cli.conventions import examples
 
 def track_cmd(
     motion: Path = data_option("The motion to track: a dataset, decoded tokens, GPT samples (any motion artifact)."),
-    expert: Path = input_option("--expert", help="The controller: a control-expert run folder."),
+    expert: Optional[Path] = input_option("--expert", help="The controller: a control-expert run folder.",
+                                          required=False),
+    prior: Optional[Path] = input_option("--prior", help="The controller: a distilled prior (its posterior and "
+                                         "decoder), instead of --expert.", required=False),
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="With --prior: decode with the first M "
+                                            "codebooks only (default: all)."),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip, the kinematic motion as a "
@@ -23,10 +28,9 @@ def track_cmd(
     as_json: bool = JsonOut,
 ):
     """Track every clip from its first frame; write the simulated bodies at the motion's frame rate."""
-    from motok.control.expert import load_expert
-    from motok.control.track import track
+    from motok.control.track import load_controller, track
 
-    res = run(lambda: track(load_expert(expert), motion, out, clips=clips, render=render))
+    res = run(lambda: track(load_controller(expert, prior, codebooks), motion, out, clips=clips, render=render))
     per = res.pop("per_clip")
     report(res, as_json, "control track")
     if not as_json:
@@ -38,5 +42,5 @@ def track_cmd(
 def register(app: typer.Typer) -> None:
     app.command("track", epilog=examples(
         "motok control track -d walk.h5 --expert runs/expert -o walk_sim.h5 --render walk_sim.mp4",
-        "motok control track -d runs/bandai2.h5 --clips 'dataset-2_run_*' --expert runs/expert -o run_sim.h5",
+        "motok control track -d runs/bandai2.h5 --clips 'dataset-2_run_*' --prior runs/prior_hybrid -o run_sim.h5",
     ))(track_cmd)

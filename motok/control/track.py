@@ -1,7 +1,7 @@
 """Kinematic motion in, physically simulated motion out (``motok control track``).
 
 Any motion artifact (a dataset, decoded tokens, GPT samples) becomes the reference of the
-imitation task; a controller (the expert, later the distilled prior's posterior and decoder)
+imitation task; a controller (the expert, or a distilled prior's posterior and decoder)
 tracks every clip from its first frame in MuJoCo until the clip ends or the tracking fails (the
 controller's own failure test); the simulated bodies are written back as a ``motion`` artifact at
 the motion's frame rate, so ``motok eval``, ``render`` and ``export bvh`` read it like any other.
@@ -69,6 +69,20 @@ def simulated_clip(name: str, sim_pos: np.ndarray, control_hz: float, fps: float
     f = extract_features(pos, skeleton, target_offsets=offsets, fps=fps, legacy=legacy)
     return Clip(name, f.features, f.joints, f.local_quats, f.root_translation, source=source, source_fps=fps,
                 **clip_fields)
+
+
+def load_controller(expert=None, prior=None, codebooks: int | None = None) -> tuple:
+    """The ``(cfg, humanoid, policy, meta)`` that :func:`track` drives: an expert run, or a distilled
+    prior's posterior and decoder (acting on the current pose; the first ``codebooks`` only)."""
+    if (expert is None) == (prior is None):
+        raise UserError("track with one controller: --expert RUN or --prior PRIOR")
+    if expert is not None:
+        from motok.control.expert import load_expert
+        return load_expert(expert)
+    from motok.control.dagger import StudentPolicy
+    from motok.control.distill import load_prior
+    cfg, hum, model, meta = load_prior(prior)
+    return cfg, hum, StudentPolicy(model, codebooks), meta
 
 
 def track(controller, motion, out, *, clips: str | None = None, render=None, batch: int = 256) -> dict:

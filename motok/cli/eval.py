@@ -20,7 +20,7 @@ Recipe = recipe_option("recipes/eval/")
 
 @app.command("train-evaluator", epilog=examples(
     "motok eval train-evaluator -d runs/bandai2.h5 -o runs/evaluator",
-    "motok eval train-evaluator -d runs/bandai2.h5 --recipe recipes/eval/evaluator_bow.yaml -o /tmp/ev"))
+    "motok eval train-evaluator -d runs/bandai2.h5 --recipe recipes/eval/evaluator_bow.yaml -o runs/ev"))
 def train_evaluator(
     data: Path = data_option("A motion-dataset with captions (.h5)."),
     out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),

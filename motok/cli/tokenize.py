@@ -34,7 +34,7 @@ def _report(summary: dict, as_json: bool, title: str):
 
 @app.command(epilog=examples(
     "motok tokenize train -d runs/bandai2.h5 --recipe recipes/tokenizer/default.yaml -o runs/tok",
-    "motok tokenize train -d runs/bandai2.h5 --recipe recipes/tokenizer/demo.yaml --set iterations=50 -o /tmp/tok"))
+    "motok tokenize train -d runs/bandai2.h5 --recipe recipes/tokenizer/demo.yaml --set iterations=50 -o runs/tok"))
 def train(
     data: Path = data_option("Training motion-dataset (.h5)."),
     out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),

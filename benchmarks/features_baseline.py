@@ -8,6 +8,9 @@ do. It reproduces the official (``legacy=True``) numbers; it is not used by the 
 
 Run ``python benchmarks/features_baseline.py`` for frames/s of this baseline and of
 ``motok.features.humanml3d.extract_features`` on the golden clip (one core), and their ratio.
+The official code itself is not run (it needs the HumanML3D repository and SMPL files): the
+ratio this script prints is against this baseline only; any figure against the official
+code is quoted, not measured here (docs/results.md).
 """
 
 from __future__ import annotations

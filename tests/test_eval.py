@@ -261,6 +261,91 @@ def test_t2m_rows_json_and_markdown(tiny_evaluator, labelled_dataset, tmp_path):
     json.dumps(rep)
 
 
+def _wrongly_captioned(src: Path, out: Path) -> Path:
+    """The test clips unchanged, each carrying the captions of a clip of another label."""
+    from motok.artifacts import Provenance
+    from motok.data.dataset import MotionFile, write_motion
+    with MotionFile(src) as mf:
+        clips = [mf.clip(i) for i in mf.split_indices("test")]
+        labels = [json.dumps(c.labels, sort_keys=True) for c in clips]
+        rng = np.random.default_rng(10)
+        while True:  # a permutation that gives no clip a caption of its own label
+            perm = rng.permutation(len(clips))
+            if all(labels[i] != labels[j] for i, j in enumerate(perm)):
+                break
+        caps = [clips[j].captions for j in perm]
+        for c, cap in zip(clips, caps):
+            c.captions, c.labels = cap, {}
+        write_motion(out, "motion", Provenance("pytest", {}), clips, mf.skeleton, mf.offsets, mf.fps, False)
+    return out
+
+
+def test_r_precision_is_chance_for_wrong_captions_and_well_above_it_for_the_real_ones(
+        tiny_evaluator, labelled_dataset, tmp_path):
+    """Through the whole protocol: the real test motion with its own captions against the same
+    motion captioned as other labels. Batches of 32: chance is k/32 for R@k."""
+    from motok.eval.report import T2MConfig, t2m
+    wrong = _wrongly_captioned(labelled_dataset, tmp_path / "wrong.h5")
+    rep = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=20, physical=False), motions=[wrong])
+    real, bad = (r["metrics"] for r in rep["rows"])
+    # 20 repeats x 32 pairs: chance R@1 = 1/32 +- 0.007 (one std of 640 draws)
+    assert bad["R@1"]["mean"] < 1 / 32 + 0.025 and bad["R@3"]["mean"] < 3 / 32 + 0.04
+    # the real row at 5x chance or more (measured: R@1 0.24, R@3 0.56 after 60 iterations)
+    assert real["R@1"]["mean"] > 5 / 32 and real["R@3"]["mean"] > 0.4
+    assert bad["MM-Dist"]["mean"] > real["MM-Dist"]["mean"] + 0.1
+    assert max(bad["FID"]["mean"], real["FID"]["mean"]) < 1e-3  # the motion itself is real in both rows
+
+
+def test_caption_overlap_and_the_unseen_rows(tiny_evaluator, labelled_dataset):
+    from motok.data.dataset import MotionFile
+    from motok.eval.captions import caption_overlap
+    from motok.eval.report import T2MConfig, markdown, t2m
+    with MotionFile(labelled_dataset) as mf:
+        owner, split = mf.h5["captions/clip"][()], mf.splits
+        texts = [mf.captions(i) for i in range(len(mf))]
+    train = {t for i in range(len(split)) if split[i] == "train" for t, _, _ in texts[i]}
+    test = [[t for t, _, _ in texts[i]] for i in range(len(split)) if split[i] == "test" and texts[i]]
+    flat = [t for c in test for t in c]
+    ov = caption_overlap(labelled_dataset)
+    assert ov["captions"] == len(flat) == len(owner[[split[int(c)] == "test" for c in owner]])
+    assert ov["share_in_train"] == pytest.approx(np.mean([t in train for t in flat]))
+    unseen = [c for c in test if any(t not in train for t in c)]
+    assert ov["clips_with_unseen_caption"] == len(unseen) >= 2
+    assert 0 < ov["unseen_captions"] == sum(t not in train for t in flat) < len(flat)
+    from motok.eval.captions import training_captions, unseen_only
+    from motok.eval.sets import real_set
+    kept = unseen_only(real_set(labelled_dataset, "test")[0], training_captions(labelled_dataset))
+    assert sum(map(len, kept.captions)) == ov["unseen_captions"]
+    assert not {t for c in kept.captions for t in c} & train
+    rep = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=2, physical=False, captions="unseen"))
+    (row,) = rep["rows"]
+    assert rep["clips"] == row["motions"] == len(unseen) and rep["captions"] == "unseen"
+    assert rep["caption_overlap"]["share_in_train"] == pytest.approx(ov["share_in_train"])
+    assert "only captions that do not occur in training" in markdown(rep)
+    full = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=2, physical=False))
+    assert full["clips"] == len(test) and full["rows"][0]["repeats"]["MM-Dist"] != row["repeats"]["MM-Dist"]
+
+
+def test_unseen_only_and_the_label_reader_ceiling_by_hand():
+    from motok.eval.captions import label_ceiling, unseen_only
+    from motok.eval.sets import MotionSet
+    clips = [np.full((8, 3), k, np.float32) for k in range(4)]
+    ms = MotionSet("x", clips, [["a", "b"], ["a"], ["c"], ["b", "d"]], sample=np.array([0, 1, 0, 1]),
+                   labels=["p", "q", "r", "s"], mm_groups=[[0, 1], [2, 3]], mm_texts=["a", "d"])
+    u = unseen_only(ms, {"a", "b"})
+    assert u.captions == [["c"], ["d"]] and [int(c[0, 0]) for c in u.clips] == [2, 3]
+    assert u.sample.tolist() == [0, 1] and u.labels == ["r", "s"] and u.mm_groups == [[2, 3]] and u.mm_texts == ["d"]
+    # one batch of 4: labels a, a, b, b -> two clips per label, a perfect reader hits R@1 half the time
+    assert label_ceiling(["a", "a", "b", "b"], batch=4, top_k=2, shuffles=3) == \
+        {"batch": 4, "shuffles": 3, "R@1": 0.5, "R@2": 1.0}
+    assert label_ceiling(list("abcd"), batch=4, top_k=1, shuffles=1)["R@1"] == 1.0
+    # batches of 2 from a, a, a, b: every split is {a, b} (both sure) + {a, a} (a coin each): 3/4
+    assert label_ceiling(list("aaab"), batch=2, top_k=1, shuffles=50)["R@1"] == pytest.approx(0.75)
+    # 5 clips in batches of 2: one is left out (drop_last) and the rest still average exactly
+    assert label_ceiling(list("abcde"), batch=2, top_k=1, shuffles=5)["R@1"] == 1.0
+    assert label_ceiling(["a", ""], batch=2) is None
+
+
 @pytest.fixture(scope="module")
 def tiny_tokenizer(labelled_dataset, tmp_path_factory) -> Path:
     from motok.quantize.base import QuantizerConfig
@@ -281,6 +366,27 @@ def test_recon_row_with_a_tiny_tokenizer(tiny_evaluator, labelled_dataset, tiny_
     assert row["name"].startswith("reconstruction") and row["recon"]["mpjpe_mm"] > 0
     same = recon(labelled_dataset, "test", tokenizer=tiny_tokenizer)
     assert same["mpjpe_mm"] == pytest.approx(row["recon"]["mpjpe_mm"]) and same["accel_error_mm"] > 0
+    # Against an independent computation: the model's forward pass (not encode/decode), the
+    # error definitions written out, every frame of every test clip pooled.
+    import torch
+
+    from motok.data.dataset import MotionFile
+    from motok.features.humanml3d import recover_from_ric
+    from motok.tokenizer.train import load_tokenizer
+    model, _ = load_tokenizer(tiny_tokenizer)
+    rel, glob, acc = [], [], []
+    with MotionFile(labelled_dataset) as mf, torch.no_grad():
+        for i in mf.split_indices("test"):
+            gt = mf.frames("features", i).astype(np.float64)
+            gt = gt[: len(gt) // 4 * 4]
+            pred = model.denormalize(model(model.normalize(torch.from_numpy(gt).float()[None])).recon)[0].double()
+            p, g = recover_from_ric(pred.numpy(), 21), recover_from_ric(gt, 21)
+            rel += list(np.linalg.norm((p - p[:, :1]) - (g - g[:, :1]), axis=-1).mean(1))
+            glob += list(np.linalg.norm(p - g, axis=-1).mean(1))
+            acc += list(np.linalg.norm(np.diff(p, 2, axis=0) - np.diff(g, 2, axis=0), axis=-1).mean(1))
+    assert same["mpjpe_mm"] == pytest.approx(1000 * np.mean(rel), rel=1e-4)
+    assert same["mpjpe_global_mm"] == pytest.approx(1000 * np.mean(glob), rel=1e-4)
+    assert same["accel_error_mm"] == pytest.approx(1000 * np.mean(acc), rel=1e-4)
     perfect = recon(labelled_dataset, "test", motions=labelled_dataset)
     assert perfect["mpjpe_mm"] == 0.0 and perfect["clips"] == 38
 
@@ -302,6 +408,10 @@ def test_generation_row_from_a_tiny_gpt(tiny_evaluator, labelled_dataset, tiny_t
     assert row["motions"] == 38 and row["mmodality_counts"] == {"captions": 3, "samples_per_caption": 3,
                                                                 "pairs_per_caption": 10}
     assert ("GT length" in row["name"]) == gt_length and np.isfinite(row["metrics"]["FID"]["mean"])
+    # the tiny GPT and the tiny evaluator both read bow: the report says their text side is shared
+    assert row["gpt_text_encoder"] == "bow" and row["text_side"] == "shared"
+    from motok.eval.report import markdown
+    assert "(shared text side)" in markdown(rep)
     with MotionFile(tmp_path / "gen.h5", "motion") as mf:
         assert len(mf) == 2 * 38 + 3 * 3
         if gt_length:  # every t2m sample is as long as its source clip, cut to whole tokens
@@ -329,6 +439,14 @@ def test_cli_t2m_fid_alias_recon_and_physical(tiny_evaluator, labelled_dataset, 
     assert json.loads(r.stdout)["skate_cm_s"] == pytest.approx(rep["rows"][1]["physical"]["skate_cm_s"])
     r = runner.invoke(app, ["eval", "recon", "--data", str(labelled_dataset), "-m", str(gen), "--json"])
     assert r.exit_code == 0 and json.loads(r.stdout)["mpjpe_mm"] > 0
+    r = runner.invoke(app, ["eval", "captions", "--data", str(labelled_dataset), "--json"])
+    assert r.exit_code == 0, r.output
+    cap = json.loads(r.stdout)
+    assert cap["clips"] == 38 and 0 < cap["share_in_train"] < 1 and 0 < cap["label_ceiling"]["R@1"] <= 1
+    r = runner.invoke(app, base + ["--captions", "unseen", "--json"])
+    assert r.exit_code == 0 and json.loads(r.output)["captions"] == "unseen", r.output
+    r = runner.invoke(app, base + ["--captions", "novel"])
+    assert r.exit_code == 2 and "all or unseen" in r.output
     bad = runner.invoke(app, ["eval", "t2m", "-e", str(tmp_path / "nope"), "--data", str(labelled_dataset)])
     assert bad.exit_code == 2 and "bundle" in bad.output
     bad = runner.invoke(app, ["eval", "train-evaluator", "--data", str(labelled_dataset), "-o", str(tmp_path / "e"),
@@ -338,9 +456,15 @@ def test_cli_t2m_fid_alias_recon_and_physical(tiny_evaluator, labelled_dataset, 
 
 def test_every_eval_recipe_loads():
     from motok.config import load_config
-    from motok.eval.evaluator import resolve_config
+    from motok.eval.evaluator import EvaluatorConfig, resolve_config
     from motok.eval.report import T2MConfig
+    from motok.gpt.train import resolve_config as gpt_config
     root = Path(__file__).resolve().parent.parent / "recipes" / "eval"
+    # The default evaluator's text side is independent of the default GPT's (docs/eval.md).
+    default = resolve_config(root / "evaluator.yaml").text_encoder
+    gpt_default = {gpt_config(None, []).text_encoder, gpt_config(root.parent / "gpt" / "default.yaml").text_encoder}
+    assert default == EvaluatorConfig().text_encoder == "bow" and gpt_default == {"minilm"}
+    assert resolve_config(root / "evaluator_minilm.yaml").text_encoder == "minilm"
     for path in sorted(root.glob("*.yaml")):
         if path.stem.startswith("evaluator"):
             assert resolve_config(path).iterations >= 1

@@ -15,6 +15,7 @@ from safetensors.torch import load_file
 from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp, train
 from motok.control.mdp.actions import ActionConfig
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
+from motok.errors import UserError
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.sim.env import SimConfig
 from motok.sim.reference import ReferenceLibrary, body_states, load_library
@@ -136,6 +137,53 @@ def test_expert_loop_on_a_standing_reference_logs_its_metrics(hum, tmp_path):
     assert meta["extra"]["normaliser"] == ["ac.norm.mean", "ac.norm.var", "ac.norm.count"]
 
 
+def test_a_warm_start_begins_from_the_other_runs_weights_and_not_its_counters(hum, walk_lib, tmp_path):
+    cfg = small_cfg(iterations=4, save_every=2)
+    train(cfg, tmp_path / "first", hum, walk_lib, until=2)
+    train(cfg, tmp_path / "warm", hum, walk_lib, init=tmp_path / "first", until=0)
+    a, b = load_file(tmp_path / "first" / "model.safetensors"), load_file(tmp_path / "warm" / "model.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)  # policy, critic, normaliser, disc
+    meta = json.loads((tmp_path / "warm" / "bundle.json").read_text())
+    assert meta["extra"]["iteration"] == 0 and meta["extra"]["init_info"]["iteration"] == 2
+    out = train(cfg, tmp_path / "warm", hum, walk_lib, resume=True, until=2)
+    assert out["iterations"] == 2 and out["samples"] == 2 * 8 * cfg.ppo.horizon
+    c = load_file(tmp_path / "warm" / "model.safetensors")
+    assert not torch.equal(a["ac.norm.count"], c["ac.norm.count"])  # it trained on from there
+    wide = replace(cfg, net=replace(cfg.net, encoder=[32, 32]))
+    with pytest.raises(UserError, match="do not fit"):
+        train(wide, tmp_path / "bad", hum, walk_lib, init=tmp_path / "first", until=0)
+
+
+def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(hum, walk_lib, tmp_path):
+    import signal
+
+    from motok.control import runner
+    from motok.control.expert import KIND
+
+    cfg = small_cfg(iterations=6, save_every=2)
+    before = signal.getsignal(signal.SIGTERM)
+
+    def make(d):
+        tr = ExpertTrainer(cfg, hum, walk_lib, d)
+        step = tr.step
+
+        def step_and_signal():
+            out = step()
+            if tr.iteration == 3:  # a SIGTERM mid-segment: the run goes on to iteration 4, saves, stops
+                signal.raise_signal(signal.SIGTERM)
+            return out
+        tr.step = step_and_signal
+        return tr
+
+    out = runner.train(make, cfg, tmp_path / "stopped", hum, kind=KIND)
+    assert out["iterations"] == 4 and signal.getsignal(signal.SIGTERM) is before
+    assert json.loads((tmp_path / "stopped" / "bundle.json").read_text())["extra"]["iteration"] == 4
+    train(cfg, tmp_path / "stopped", hum, walk_lib, resume=True)
+    train(cfg, tmp_path / "straight", hum, walk_lib)
+    a, b = load_file(tmp_path / "straight" / "model.safetensors"), load_file(tmp_path / "stopped" / "model.safetensors")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_expert_training_resumes_exactly(hum, walk_lib, tmp_path):
     cfg = small_cfg(iterations=4, save_every=2)
     train(cfg, tmp_path / "straight", hum, walk_lib)
@@ -193,7 +241,12 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     res = json.loads((run / "eval.json").read_text())
     o = res["overall"]
-    assert o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0 and o["g_mpjpe_mm"] >= o["mpjpe_mm"] * 0.2
+    assert o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0
+    # the overall errors are the clips' errors weighted by the time each was played
+    w = np.array([v["seconds"] for v in res["clips"].values()])
+    for k in ("mpjpe_mm", "g_mpjpe_mm"):
+        per = np.array([v[k] for v in res["clips"].values()])
+        assert (per > 0).all() and o[k] == pytest.approx(float((per * w).sum() / w.sum()), rel=1e-9)
     assert all(v["seconds"] > 0 for v in res["clips"].values()) and (tmp_path / "e.gif").exists()
     assert o["success_rate_any_body"] <= o["success_rate"] and o["termination"] == "any body error > 0.5 m"
     # what was measured: the checkpoint's iteration and hash, and the data's hash

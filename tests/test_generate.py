@@ -12,22 +12,19 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from motok.control.distill import DistillConfig, load_prior, train
-from motok.control.expert import ExpertConfig
-from motok.control.expert import train as train_expert
+from motok.control.distill import load_prior
 from motok.control.generate import check_codebooks, generate, rollout, sample_latent
 from motok.control.mdp.resets import reference_state
-from motok.control.priors import LatentPrior, PriorConfig
+from motok.control.priors import LatentPrior
 from motok.data.dataset import MotionFile
 from motok.errors import UserError
 from motok.sim.reference import load_library
+from tiny_runs import small_prior_config, tiny_prior_bundle
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def small(kind: str) -> PriorConfig:
-    return PriorConfig(kind=kind, latent_dim=8, posterior_hidden=[16], prior_hidden=[16], decoder_hidden=[16],
-                       num_codebooks=4, codebook_size=16, vq_codebook_size=32, kmeans_init=False)
+small = small_prior_config
 
 
 @pytest.fixture(scope="module")
@@ -37,22 +34,8 @@ def walk_lib(hum, small_dataset, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tiny_prior(hum, walk_lib, small_dataset, tmp_path_factory):
-    """A hybrid prior with 4 codebooks, distilled for 2 iterations from a 1-iteration expert:
-    untrained, but a real bundle with every part generation reads."""
-    root = tmp_path_factory.mktemp("gen-runs")
-    ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)
-    ecfg.env.num_envs, ecfg.env.nthread, ecfg.ppo.horizon, ecfg.ppo.minibatch_size = 4, 1, 8, 32
-    ecfg.net.encoder = ecfg.net.decoder = ecfg.net.value = [16]
-    ecfg.net.latent_dim = 8
-    ecfg.amp.enabled = False
-    ecfg.action.base, ecfg.task.termination = "reference", "mean"
-    train_expert(ecfg, root / "expert", hum, walk_lib, data=small_dataset)
-    cfg = DistillConfig(seed=0, iterations=2, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
-    cfg.env.num_envs, cfg.env.nthread = 4, 1
-    cfg.task.termination = "mean"
-    cfg.prior = small("hybrid")
-    train(cfg, root / "prior", root / "expert", walk_lib, data=small_dataset)
-    return root / "prior"
+    """A hybrid prior with 4 codebooks: untrained, but a real bundle with every part generation reads."""
+    return tiny_prior_bundle(tmp_path_factory.mktemp("gen-runs"), hum, walk_lib, small_dataset)
 
 
 # ---------------------------------------------------------------------- the draws

@@ -246,6 +246,65 @@ def test_kmeans_init_runs_lloyd_once_on_the_first_training_batch():
     assert torch.equal(q.embed.detach(), book)  # not re-initialised
 
 
+def far_batch(n=64, D=8, seed=13):
+    """(1, D, n) encoder outputs around 5, far outside the uniform start's [-1/K, 1/K]."""
+    return (5 + torch.randn(n, D, generator=torch.Generator().manual_seed(seed))).t()[None]
+
+
+@pytest.mark.parametrize("kind", ["vq", "ema", "reset", "ema_reset"])
+def test_t2m_gpt_init_starts_each_kind_as_the_official_code(kind):
+    """T2M-GPT (models/quantize_cnn.py): the plain quantizer starts at U(-1/K, 1/K); EMA, reset
+    and EMA+reset take K rows of the first training batch, with EMA counts 1 and sums = codes."""
+    K, D = 16, 8
+    q = make(kind, K=K, D=D, init="t2m_gpt").train()
+    start = q.embed.detach().clone()
+    assert start.abs().max() <= 1.0 / K
+    z = far_batch(D=D)
+    x = rows(z)
+    out = q(z)
+    idx = out.indices.reshape(-1)
+    codes = rows(out.z_q.detach())  # the codes this step was assigned to, before its update
+    if kind == "vq":
+        assert int(q.initted) == 1 and out.stats["usage"][0] < 0.5  # far data lands on a few codes
+        assert codes.abs().max() <= 1.0 / K
+        return
+    assert int(q.initted) == 1 and out.stats["usage"] == [1.0]  # each code wins at least its own row
+    for k in idx.unique():  # every code is one of the batch's rows, exactly
+        assert (x == codes[idx == k][0]).all(1).any()
+    assert len(codes.unique(dim=0)) == K  # drawn without replacement
+    if q.uses_ema:
+        c = torch.zeros(K, D).index_copy_(0, idx, codes)
+        n = torch.bincount(idx, minlength=K).float()
+        sums = torch.zeros(K, D).index_add_(0, idx, x)
+        assert torch.allclose(q.ema_count, 0.99 * 1.0 + 0.01 * n)
+        assert torch.allclose(q.ema_sum, 0.99 * c + 0.01 * sums, atol=1e-6)
+    q(far_batch(D=D, seed=14))
+    assert int(q.initted) == 1  # only the first batch initialises
+
+
+def test_batch_init_with_fewer_rows_than_codes_adds_t2m_gpt_noise():
+    K, D = 16, 8
+    q = make("ema", K=K, D=D, init="batch").train()
+    z = far_batch(n=10, D=D)
+    out = q(z)
+    err = (out.z_q - z).abs()
+    # Each row went to a noisy copy of itself: N(0, (0.01/sqrt(D))^2) per coordinate.
+    assert err.max() > 0 and err.max() < 6 * 0.01 / math.sqrt(D)
+    assert len(q.embed.unique(dim=0)) == K  # no two codes tie
+
+
+def test_uniform_init_is_the_old_start_and_bad_inits_are_refused():
+    for kind in ("ema", "reset", "ema_reset"):
+        q = make(kind, init="uniform").train()
+        out = q(far_batch())
+        assert int(q.initted) == 1 and out.stats["usage"][0] < 0.5  # started at U(-1/K, 1/K): a few codes win
+    assert make("ema").init_method == "uniform"  # the shared default, which the physics priors use
+    assert make("ema", kmeans_init=True).init_method == "kmeans"
+    for bad in ({"init": "random"}, {"init": "batch", "kmeans_init": True}):
+        with pytest.raises(ValueError, match="init"):
+            make("ema", **bad)
+
+
 # --- residual VQ --------------------------------------------------------------------------
 
 def test_rvq_z_q_is_the_sum_of_codebook_vectors_and_any_prefix_decodes():
@@ -505,6 +564,8 @@ DDP_CONFIGS = {
     # dropout 0.5, not 1.0: whether to drop must also agree across ranks.
     "rvq": dict(kind="rvq", codebook_size=16, dim=8, num_codebooks=3, quantizer_dropout=0.5),
     "reset": dict(kind="reset", codebook_size=16, dim=8, reset_window=2),
+    # the T2M-GPT start: codes drawn from both ranks' first batches must agree too.
+    "ema_reset_batch": dict(kind="ema_reset", codebook_size=16, dim=8, init="batch", reset_threshold=1.5),
     "fsq": dict(kind="fsq", dim=8, fsq_levels=[4, 4, 3]),
 }
 

@@ -73,13 +73,18 @@ def test_bad_mjcf_gets_clear_errors(tmp_path, hum_path):
 def test_reference_fk_reproduces_dataset_joints(hum, lib, small_dataset):
     from motok.data.dataset import MotionFile
 
+    # docs/sim.md and docs/results.md claim 3.6 mm at 20 fps (mean 0.4) and 8.6 mm at 30 Hz (mean
+    # 0.6) on these 24 clips, which `python benchmarks/fk_accuracy.py` prints: tested at what is
+    # claimed, to the 0.1 mm it is stated in.
     err = np.linalg.norm(lib.body_pos - lib.joints, axis=-1)  # 30 Hz, every clip and body
-    assert err.max() < 0.02, err.max()
-    native = build_library(hum, small_dataset, control_hz=20.0, clips=[0, 5])  # the dataset's own rate
-    with MotionFile(small_dataset) as mf:
-        for i, name in enumerate(native.names):
-            joints = to_mj(mf.clip(name).joints)
-            assert np.linalg.norm(native.clip(i)["body_pos"] - joints, axis=-1).max() < 0.02
+    assert len(lib) == 24 and round(err.max() * 1e3, 1) <= 8.6 and round(err.mean() * 1e3, 1) <= 0.6, err.max()
+    native = build_library(hum, small_dataset, control_hz=20.0)  # the dataset's own rate, all 24 clips
+    err20 = np.linalg.norm(native.body_pos - native.joints, axis=-1)
+    assert round(err20.max() * 1e3, 1) <= 3.6 and round(err20.mean() * 1e3, 1) <= 0.4, err20.max()
+    with MotionFile(small_dataset) as mf:  # and against the file itself, not the library's copy
+        for i in (0, 5):
+            joints = to_mj(mf.clip(native.names[i]).joints)
+            assert np.linalg.norm(native.clip(i)["body_pos"] - joints, axis=-1).max() < 3.65e-3
     # qvel and the body velocities agree with finite differences of the kinematics
     c = lib.clip(3)
     fd = (c["body_pos"][2:] - c["body_pos"][:-2]) * lib.fps / 2

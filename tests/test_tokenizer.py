@@ -195,6 +195,11 @@ def test_every_recipe_loads_and_table_variants_share_a_budget():
     assert codes == {512}
     p = cfgs["paper"]
     assert (p.model.width, p.quantizer.dim, p.quantizer.codebook_size, p.batch_size, p.window) == (512, 512, 512, 256, 64)
+    # Codebooks start as in T2M-GPT's code, by default and in every recipe (docs/tokenizer.md).
+    assert TrainConfig().quantizer.init == "t2m_gpt" and {c.quantizer.init for c in cfgs.values()} == {"t2m_gpt"}
+    starts = {k: VQVAE(251, ModelConfig(width=16, depth=1), cfgs[k].quantizer).quantizer for k in ("vq", "ema", "rvq")}
+    assert starts["vq"].init_method == "uniform" and starts["ema"].init_method == "batch"
+    assert {layer.init_method for layer in starts["rvq"].layers} == {"batch"}
 
 
 # --------------------------------------------------------------------------- training
@@ -243,6 +248,32 @@ def test_resume_guards(tiny_run, small_dataset, tmp_path):
         f.attrs["fps"] = 30.0  # another data set, same layout
     with pytest.raises(TokenizerError, match="hash differs"):
         train(cfg, other, tiny_run, resume=True)
+
+
+def test_an_older_bundle_without_init_resumes_with_its_uniform_start(small_dataset, tmp_path):
+    run = tmp_path / "old"
+    train(tiny("iterations=4", "quantizer.init=uniform"), small_dataset, run, stop_at=2)
+    meta_path = run / "bundle.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["config"]["quantizer"]["init"]  # as written by motok 0.1
+    meta_path.write_text(json.dumps(meta))
+    cfg = resolve_config(None, [], run, resume=True)
+    assert cfg.quantizer.init == "uniform"
+    train(cfg, small_dataset, run, resume=True)
+    with pytest.raises(ConfigError, match="quantizer"):  # but not into another start
+        resolve_config(None, ["quantizer.init=t2m_gpt"], run, resume=True)
+
+
+def test_bundle_records_the_split_the_statistics_came_from(small_dataset, tmp_path):
+    import h5py
+    train(tiny("iterations=1"), small_dataset, tmp_path / "a")
+    assert load_bundle(tmp_path / "a")[0]["extra"]["stats_split"] == "train"
+    other = tmp_path / "all.h5"
+    other.write_bytes(Path(small_dataset).read_bytes())
+    with h5py.File(other, "r+") as f:
+        f["stats"].attrs["split"] = "all"  # as preprocessing writes it when no clip is in train
+    train(tiny("iterations=1"), other, tmp_path / "b")
+    assert load_bundle(tmp_path / "b")[0]["extra"]["stats_split"] == "all"
 
 
 def _free_port() -> int:
@@ -342,15 +373,34 @@ def test_metric_is_zero_for_perfect_reconstruction(small_dataset):
     assert e["accel"].max() < 1e-6  # a constant offset has no acceleration
 
 
-def test_eval_numbers_are_sane(tiny_run, small_dataset):
+def test_eval_equals_an_independent_computation(tiny_run, small_dataset):
+    """`tokenize eval` against the definitions computed another way: the model's forward pass
+    (not encode/decode), joints by recover_from_ric, errors written out, all frames pooled."""
     with MotionFile(small_dataset) as mf:
         split = next(s for s in ("test", "val", "train") if mf.split_indices(s))
+        clips = [mf.frames("features", i).astype(np.float64) for i in mf.split_indices(split)]
     r = evaluate(tiny_run, small_dataset, split)
-    assert np.isfinite(r["mpjpe_mm"]) and 0 < r["mpjpe_mm"] < 2000
-    assert np.isfinite(r["accel_error_mm"]) and r["accel_error_mm"] > 0 and r["mpjpe_global_mm"] >= 0
-    cb = r["codebooks"]
-    assert len(cb) == 1 and cb[0]["used"] + cb[0]["dead"] == 64 and 0 < cb[0]["usage"] <= 1
-    assert 1 <= cb[0]["perplexity"] <= cb[0]["used"] + 1e-6
+    model, _ = load_tokenizer(tiny_run)
+    rel, glob, acc, codes = [], [], [], []
+    with torch.no_grad():
+        for gt in clips:
+            gt = gt[: len(gt) // 4 * 4]
+            out = model(model.normalize(torch.from_numpy(gt).float()[None]))
+            pred = model.denormalize(out.recon)[0].double().numpy()
+            codes.append(out.indices.reshape(-1).numpy())
+            p, g = recover_from_ric(pred, 21), recover_from_ric(gt, 21)
+            rel.append(np.sqrt((((p - p[:, :1]) - (g - g[:, :1])) ** 2).sum(-1)).mean(1))
+            glob.append(np.sqrt(((p - g) ** 2).sum(-1)).mean(1))
+            acc.append(np.sqrt((((p[2:] - 2 * p[1:-1] + p[:-2]) - (g[2:] - 2 * g[1:-1] + g[:-2])) ** 2).sum(-1)).mean(1))
+    assert r["clips"] == len(clips) and r["frames"] == sum(len(c) // 4 * 4 for c in clips)
+    assert r["mpjpe_mm"] == pytest.approx(1000 * np.concatenate(rel).mean(), rel=1e-4)
+    assert r["mpjpe_global_mm"] == pytest.approx(1000 * np.concatenate(glob).mean(), rel=1e-4)
+    assert r["accel_error_mm"] == pytest.approx(1000 * np.concatenate(acc).mean(), rel=1e-4)
+    used = np.unique(np.concatenate(codes))
+    cb = r["codebooks"][0]
+    assert cb["used"] == len(used) and cb["dead"] == 64 - len(used) and cb["usage"] == len(used) / 64
+    n = np.bincount(np.concatenate(codes), minlength=64) / sum(map(len, codes))
+    assert cb["perplexity"] == pytest.approx(np.exp(-(n[n > 0] * np.log(n[n > 0])).sum()))
 
 
 # --------------------------------------------------------------------------- command line

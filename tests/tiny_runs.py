@@ -36,3 +36,34 @@ def tree(tmp_path_factory, small_dataset):
     finally:
         os.chdir(here)
     return root / "runs"
+
+
+def small_prior_config(kind: str):
+    from motok.control.priors import PriorConfig
+
+    return PriorConfig(kind=kind, latent_dim=8, posterior_hidden=[16], prior_hidden=[16], decoder_hidden=[16],
+                       num_codebooks=4, codebook_size=16, vq_codebook_size=32, kmeans_init=False)
+
+
+def tiny_prior_bundle(root, hum, lib, data, kind: str = "hybrid"):
+    """A ``kind`` prior (4 codebooks of 16 codes when residual), distilled for 2 iterations from a
+    1-iteration expert: untrained, but a real bundle with every part its readers need. Returns
+    the prior's folder (``root/prior``; the expert is ``root/expert``)."""
+    from motok.control.distill import DistillConfig
+    from motok.control.distill import train as distill
+    from motok.control.expert import ExpertConfig
+    from motok.control.expert import train as train_expert
+
+    ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)
+    ecfg.env.num_envs, ecfg.env.nthread, ecfg.ppo.horizon, ecfg.ppo.minibatch_size = 4, 1, 8, 32
+    ecfg.net.encoder = ecfg.net.decoder = ecfg.net.value = [16]
+    ecfg.net.latent_dim = 8
+    ecfg.amp.enabled = False
+    ecfg.action.base, ecfg.task.termination = "reference", "mean"
+    train_expert(ecfg, root / "expert", hum, lib, data=data)
+    cfg = DistillConfig(seed=0, iterations=2, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
+    cfg.env.num_envs, cfg.env.nthread = 4, 1
+    cfg.task.termination = "mean"
+    cfg.prior = small_prior_config(kind)
+    distill(cfg, root / "prior", root / "expert", lib, data=data)
+    return root / "prior"

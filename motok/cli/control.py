@@ -15,7 +15,8 @@ from motok.cli.conventions import examples, renamed
 
 JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
 
-app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP).", no_args_is_help=True)
+app = typer.Typer(help="Physics-based control: the imitation expert (PPO + AMP), latent priors, task policies.",
+                  no_args_is_help=True)
 expert_app = typer.Typer(help="The hybrid-latent paper's expert policy (appendix B.2).", no_args_is_help=True)
 app.add_typer(expert_app, name="expert")
 
@@ -23,7 +24,8 @@ app.add_typer(expert_app, name="expert")
 @expert_app.command("train", epilog=examples(
     "motok control expert train -d runs/bandai2.h5 --clips 'dataset-2_walk_normal*' "
     "--recipe recipes/control/expert.yaml -o runs/expert",
-    "motok control expert train -d runs/bandai2.h5 -o runs/expert --resume --until 2000"))
+    "motok control expert train -d runs/bandai2.h5 -o runs/expert --resume --until 2000",
+    "motok control expert train -d runs/bandai2.h5 --split train --init runs/expert_walk -o runs/expert_all"))
 def train_cmd(
     data: Path = data_option("A motion-dataset artifact (.h5)."),
     out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
@@ -38,6 +40,9 @@ def train_cmd(
     resume: bool = Resume,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the LR schedule still "
                                         "spans the recipe's iterations; --resume continues)."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from this expert run's weights (fresh "
+                                        "optimisers and counters; its humanoid), e.g. one trained on a subset.",
+                                        callback=existing),
     as_json: bool = JsonOut,
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
@@ -46,7 +51,7 @@ def train_cmd(
 
     cfg = run(load_config, ExpertConfig, recipe, sets)
     summary = run(train_from_data, cfg, data, out, clips=clips, split=split, humanoid=humanoid, resume=resume,
-                  until=until)
+                  until=until, init=init)
     report(summary, as_json, "control expert train")
 
 
@@ -127,3 +132,6 @@ register(app)
 
 from motok.cli.track import register as register_track  # noqa: E402  (motok control track)
 register_track(app)
+
+from motok.cli.tasks import register as register_tasks  # noqa: E402  (motok control train, perturb)
+register_tasks(app)

@@ -47,6 +47,9 @@ def _t2m_command(
     gt_length: bool = typer.Option(False, "--gt-length", help="Generate at the ground-truth length, not until End."),
     split: Optional[str] = typer.Option(None, "--split", help="Split of --data (default test)."),
     repeats: Optional[int] = typer.Option(None, "--repeats", help="Repeats (default 20)."),
+    captions: Optional[str] = typer.Option(None, "--captions", metavar="all|unseen",
+                                           help="unseen: only the captions that do not occur word for word in "
+                                                "the train split (clips without one are left out; default all)."),
     no_real: bool = typer.Option(False, "--no-real", help="Skip the real-motion row."),
     save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples here (.h5).",
                                                    suffixes=H5, required=False),
@@ -61,7 +64,7 @@ def _t2m_command(
     out_md = [p for p in outs if p.suffix.lower() == ".md"]
     if len(out_json) > 1 or len(out_md) > 1:
         fail("-o takes at most one .json and one .md")
-    flags = {"split": split, "repeats": repeats}
+    flags = {"split": split, "repeats": repeats, "captions": captions}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["gt_length=true"] * gt_length
     cfg = run(load_config, T2MConfig, recipe, overrides)
@@ -80,6 +83,21 @@ _T2M_EXAMPLES = examples(
     "motok eval t2m -e runs/evaluator -d runs/bandai2.h5 --motions walk_generated.h5 --repeats 5")
 app.command("t2m", epilog=_T2M_EXAMPLES)(_t2m_command)
 app.command("fid", help="Alias of `t2m`.", epilog=_T2M_EXAMPLES)(_t2m_command)
+
+
+@app.command("captions", epilog=examples("motok eval captions -d runs/bandai2.h5",
+                                         "motok eval captions -d runs/bandai2.h5 --split val --json"))
+def captions_command(
+    data: Path = data_option("A motion-dataset with captions and splits."),
+    split: str = typer.Option("test", "--split", help="The evaluated split."),
+    train_split: str = typer.Option("train", "--train-split", help="The split whose captions count as seen."),
+    batch: int = typer.Option(32, "--batch", help="R-precision batch of the label-reader ceiling."),
+    as_json: bool = JsonOut,
+):
+    """Share of the split's captions that occur word for word in training, and the R-precision
+    ceiling of a perfect label reader (no model involved)."""
+    from motok.eval.captions import caption_report
+    report(run(caption_report, data, split, train_split, batch), as_json, f"eval captions ({split} vs {train_split})")
 
 
 @app.command(epilog=examples("motok eval recon -d runs/bandai2.h5 -t runs/tok --split test",

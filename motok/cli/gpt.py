@@ -8,8 +8,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, existing, fail, output_option, recipe_option,
-                              report, results, run)
+from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, existing, fail, input_option, output_option,
+                              recipe_option, report, results, run)
 from motok.cli.conventions import examples, renamed
 
 app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes): train, sample.",
@@ -52,7 +52,9 @@ def train(
 
 @app.command(epilog=examples(
     'motok gpt sample -g runs/gpt --text "a person walks forward" -n 4 -o walk.h5 --render walk.gif --bvh walk.bvh',
-    'motok gpt sample -g runs/gpt --texts-file prompts.txt --seconds 4 --top-k 20 -o prompts.h5 --json'))
+    'motok gpt sample -g runs/gpt --texts-file prompts.txt --seconds 4 --top-k 20 -o prompts.h5 --json',
+    'motok gpt sample -g runs/gpt --text "a person walks forward" --physics runs/prior_hybrid -o walk_sim.h5 '
+    '--render walk_sim.mp4'))
 def sample(
     gpt: Path = typer.Option(..., "--gpt", "-g", help="A GPT run folder (from `gpt train`)."),
     text: list[str] = typer.Option([], "--text", metavar="TEXT",
@@ -78,9 +80,19 @@ def sample(
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Tokenizer run (default: the GPT's own).",
                                              callback=existing),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode with another tokenizer."),
+    physics: Optional[Path] = input_option("--physics", help="Also simulate: track the motion with this distilled "
+                                           "prior (a control-prior: its posterior and decoder); -o is then the "
+                                           "simulated motion, the kinematic one goes to OUT.kinematic.h5, "
+                                           "--render is a video (.mp4/.gif) of the first clip over its kinematic "
+                                           "ghost and --bvh exports the simulated clips.", required=False),
+    expert: Optional[Path] = input_option("--expert", help="Simulate as --physics does, tracked by this "
+                                          "control-expert run instead of a prior.", required=False),
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="With --physics: decode with the first M "
+                                            "codebooks only (default: all)."),
     as_json: bool = JsonOut,
 ):
-    """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went."""
+    """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went. With
+    --physics (or --expert) the motion is also tracked in MuJoCo, as `motok control track` does."""
     from motok.gpt.sample import sample as _sample
     texts = list(text)
     if texts_file is not None:
@@ -88,7 +100,34 @@ def sample(
             texts += [ln.strip() for ln in texts_file.read_text(encoding="utf-8").splitlines() if ln.strip()]
         except (OSError, UnicodeDecodeError) as e:
             fail(f"--texts-file {texts_file}: not a readable text file ({e})")
-    summary = run(_sample, gpt, texts, out, num_samples=num_samples, seed=seed, temperature=temperature,
-                  top_k=top_k, top_p=top_p, argmax=argmax, seconds=seconds, render=render, bvh=bvh,
-                  tokenizer=tokenizer, allow_mismatch=allow_mismatch)
-    _report(summary, as_json, "gpt sample")
+    opts = dict(num_samples=num_samples, seed=seed, temperature=temperature, top_k=top_k, top_p=top_p,
+                argmax=argmax, seconds=seconds, render=render, bvh=bvh, tokenizer=tokenizer,
+                allow_mismatch=allow_mismatch)
+    if physics is None and expert is None and codebooks is None:
+        _report(run(_sample, gpt, texts, out, **opts), as_json, "gpt sample")
+        return
+    from motok.control.text_to_physics import text_to_physics
+    _report_physics(run(text_to_physics, gpt, texts, out, prior=physics, expert=expert, codebooks=codebooks,
+                        **opts), as_json)
+
+
+def _report_physics(summary: dict, as_json: bool):
+    """The summary table, one line per clip (how far it was tracked, its errors), then the files."""
+    if as_json:
+        report(summary, True, "")
+        return
+    from rich.markup import escape
+    per = summary.pop("per_clip")
+    report(summary, False, "gpt sample --physics", hide=("output", "kinematic", "video", "bvh"))
+    for name, r in per.items():
+        if "mpjpe_mm" not in r:
+            line = r.get("error", "not tracked")
+        else:
+            how = "tracked to the end" if r["tracked_to_end"] else f"failed at {r['failed_at_s']:.2f} s"
+            line = (f"{how} of {r['clip_seconds']:.2f} s; MPJPE {r['mpjpe_mm']:.1f} mm, G-MPJPE "
+                    f"{r['g_mpjpe_mm']:.1f} mm" + (f"; {r['error']}" if "error" in r else ""))
+        results.print(escape(f"{name}: {line}"), soft_wrap=True, highlight=False)
+    files = [summary["output"], f"{summary['kinematic']} (the kinematic motion)"]
+    files += ([summary["video"]] if "video" in summary else []) + summary["bvh"]
+    for f in files:
+        results.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)

@@ -11,11 +11,12 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, input_option, output_option, recipe_option,
-                              report, results, run)
+from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, fail, input_option, output_option,
+                              recipe_option, report, results, run)
 from motok.cli.conventions import examples
 
 PRIORS = "continuous | discrete | discrete+ | hybrid | hybrid-vq"
+EVAL_TASKS = ("imitation", "navigation", "inbetween", "hmd")  # motok.control.tasks.registry.TASKS and imitation
 
 
 def distill_cmd(
@@ -44,8 +45,14 @@ def distill_cmd(
 
 
 def eval_cmd(
-    prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`)."),
-    task: str = typer.Option("imitation", "--task", help="The task to evaluate on: imitation."),
+    prior: Optional[Path] = input_option("--prior", help="--task imitation: a control-prior folder (from `control "
+                                         "distill`).", required=False),
+    task: str = typer.Option("imitation", "--task", help="imitation (a prior, --prior), or a trained task policy's "
+                             "task: navigation | inbetween | hmd (--run)."),
+    run_dir: Optional[Path] = input_option("--run", help="A control-task run folder (from `control train`).",
+                                           required=False),
+    episodes: int = typer.Option(256, "-n", "--num-samples", help="Task policies: episodes to evaluate."),
+    seed: int = typer.Option(0, "--seed", help="Task policies: seed of the start states and targets."),
     data: Optional[Path] = data_option("Dataset (default: the one it was distilled on).", required=False),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
                                         "distillation clips)."),
@@ -59,7 +66,13 @@ def eval_cmd(
     distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the prior's)."),
     as_json: bool = JsonOut,
 ):
-    """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors of the distilled policy."""
+    """A prior on imitation (success, MPJPE, G-MPJPE, root errors) or a task policy on its task."""
+    if task not in EVAL_TASKS:
+        fail(f"--task must be one of {', '.join(EVAL_TASKS)}, not {task!r}")
+    if task != "imitation":
+        return _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json)
+    if prior is None:
+        fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --run RUN)")
     from motok.control.prior_eval import evaluate_prior
 
     res = run(evaluate_prior, prior, task=task, data=data, clips=clips, split=split, codebooks=codebooks,
@@ -71,6 +84,22 @@ def eval_cmd(
     if as_json:
         res.pop("provenance")
     report(res if as_json else summary, as_json, f"control eval {task} ({o['termination']} ends a clip)")
+
+
+def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json) -> None:
+    if run_dir is None or prior is not None:
+        fail(f"--task {task} evaluates a trained task policy: pass --run RUN (from `motok control train`), not --prior")
+    from motok.control.task_train import evaluate_run
+
+    res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render)
+    if res["task"] != task:
+        fail(f"{run_dir} is a {res['task']!r} policy, not {task!r}")
+    if as_json:
+        res.pop("provenance")
+        report(res, True, "")
+        return
+    scalars = {k: v for k, v in res.items() if isinstance(v, (int, float, str)) and k not in ("kind", "schema_version")}
+    report(scalars, False, f"control eval {task} of {run_dir}")
 
 
 def generate_cmd(
@@ -116,7 +145,8 @@ def register(app: typer.Typer) -> None:
         "-o runs/prior_hybrid --resume --until 1000"))(distill_cmd)
     app.command("eval", epilog=examples(
         "motok control eval --task imitation --prior runs/prior_hybrid --split test",
-        "motok control eval --task imitation --prior runs/prior_hybrid --codebooks 1 --json"))(eval_cmd)
+        "motok control eval --task imitation --prior runs/prior_hybrid --codebooks 1 --json",
+        "motok control eval --task navigation --run runs/nav_hybrid -n 256 --render nav.mp4"))(eval_cmd)
     app.command("generate", epilog=examples(
         "motok control generate --prior runs/prior_hybrid --codebooks 1 --seconds 30 -n 10 -o gen_hybrid_m1.h5 "
         "--render gen.mp4",

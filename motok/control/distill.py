@@ -23,7 +23,6 @@ and codebooks.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from motok.checkpoint import CheckpointError, bundle_ref, read_meta, register_kind
+from motok.checkpoint import bundle_ref, read_meta, register_kind
 from motok.config import from_dict
 from motok.control import runner
 from motok.control.clips import select_clips
@@ -163,18 +162,18 @@ class DistillTrainer:
         return {f"model.{k}": v for k, v in self.model.state_dict().items()}
 
     def train_state(self) -> dict:
-        return {"iteration": self.iteration, "samples": self.samples, "wall": self.wall, "opt": self.opt.state_dict()}
+        return {**runner.counters(self), "opt": self.opt.state_dict()}
 
     def rank_state(self) -> dict:
-        return {"task_rng": json.dumps(self.mdp.task.rng.bit_generator.state)}
+        return runner.task_rng_state(self.mdp)
 
     def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
         self.model.load_state_dict(split_state(model, "model."))
         if shared is None:
             return
-        self.iteration, self.samples, self.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
+        runner.load_counters(self, shared)
         self.opt.load_state_dict(shared["opt"])
-        self.mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+        runner.load_task_rng(self.mdp, rank)
 
     def start_segment(self) -> None:
         self.collector.start()
@@ -240,40 +239,23 @@ class DistillTrainer:
         t1 = time.perf_counter()
         with runner.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
             stats.update(self.update(batch))
-        n = self.samples_per_iteration
-        self.iteration += 1
-        self.samples += n
-        dt = time.perf_counter() - t0
-        self.wall += dt
-        stats.update(iteration=self.iteration, samples=self.samples, wall_s=round(self.wall, 2),
-                     samples_per_s=n / dt, rollout_s=t1 - t0, update_s=dt - (t1 - t0))
-        return stats
+        return runner.finish_step(self, stats, t0, t1)
 
 
 # ---------------------------------------------------------------------- entry points
 
 def expert_record(expert_run) -> dict:
-    """The expert a prior was distilled from, for the bundle's metadata: ``expert``, a path the
-    bundle stores relative to itself (so the two can move together), and ``expert_info``: its
-    absolute path (found from anywhere on this machine) and what identifies its weights."""
-    meta = read_meta(expert_run, EXPERT_KIND)
-    ex, path = meta["extra"], Path(expert_run).resolve()
-    return {"expert": path, "expert_info": {
-        "absolute": str(path), "model_sha256": meta.get("model_sha256"), "iteration": ex.get("iteration"),
-        "samples": ex.get("samples"),
-        "action": {"base": meta["config"]["action"]["base"], "scale": meta["config"]["action"]["scale"]}}}
+    """The expert a prior was distilled from, for the bundle's metadata (:func:`runner.link_record`),
+    with its action map (what the label conversion needs)."""
+    rec = runner.link_record("expert", expert_run, EXPERT_KIND)
+    cfg = read_meta(expert_run, EXPERT_KIND)["config"]["action"]
+    rec["expert_info"]["action"] = {"base": cfg["base"], "scale": cfg["scale"]}
+    return rec
 
 
 def expert_path(run, meta: dict) -> Path:
     """Where the prior bundle ``run``'s expert is: relative to the bundle first, then absolute."""
-    found = bundle_ref(run, meta, "expert", required=False)
-    if found is not None and (found / "bundle.json").exists():
-        return found
-    absolute = Path(meta["extra"]["expert_info"]["absolute"])
-    if (absolute / "bundle.json").exists():
-        return absolute
-    raise CheckpointError(f"{run}: its expert is neither at {meta['extra'].get('expert')!r} (from the bundle) "
-                          f"nor at {absolute}")
+    return runner.linked_path(run, meta, "expert")
 
 
 def train(cfg: DistillConfig, run, expert_run, lib: ReferenceLibrary, *, resume: bool = False,

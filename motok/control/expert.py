@@ -134,8 +134,7 @@ class ExpertTrainer:
         return st
 
     def train_state(self) -> dict:
-        ts = {"iteration": self.iteration, "samples": self.samples, "wall": self.wall,
-              "ppo_opt": self.ppo.opt.state_dict(), "sampler": self.sampler.state()}
+        ts = {**runner.counters(self), "ppo_opt": self.ppo.opt.state_dict(), "sampler": self.sampler.state()}
         if self.amp is not None:
             ts["amp_opt"] = self.amp.opt.state_dict()
         return ts
@@ -153,7 +152,7 @@ class ExpertTrainer:
             self.amp.disc.load_state_dict(split_state(model, "disc."))
         if shared is None:
             return
-        self.iteration, self.samples, self.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
+        runner.load_counters(self, shared)
         self.ppo.opt.load_state_dict(shared["ppo_opt"])
         self.sampler.load(shared["sampler"])
         self._set_clip_p()
@@ -176,13 +175,7 @@ class ExpertTrainer:
         with runner.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
             stats.update(self.collector.update_hooks())
             stats.update(self.ppo.update(ro, last_value, self.iteration))
-        n = self.samples_per_iteration
-        self.iteration += 1
-        self.samples += n
-        dt = time.perf_counter() - t0
-        self.wall += dt
-        stats.update(iteration=self.iteration, samples=self.samples, wall_s=round(self.wall, 2),
-                     samples_per_s=n / dt, rollout_s=t1 - t0, update_s=dt - (t1 - t0))
+        runner.finish_step(self, stats, t0, t1)
         if self.sampler.due(self.iteration):
             t2 = time.perf_counter()
             stats.update(self.measure_difficulty())
@@ -223,8 +216,11 @@ def split_state(state: dict, prefix: str) -> dict:
 
 
 def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resume: bool = False,
-          until: int | None = None, data=None, command: str | None = None) -> dict:
-    """Train (or resume) an expert into ``run``; stops after ``until`` iterations if given."""
+          until: int | None = None, data=None, command: str | None = None, init=None) -> dict:
+    """Train (or resume) an expert into ``run``; stops after ``until`` iterations if given.
+    ``init``: an expert run whose weights (policy, critic, normaliser, discriminator) a new run
+    starts from, with fresh optimisers, counters and schedules (a warm start, e.g. from an expert
+    of a subset of the clips); recorded in the bundle. A resumed run ignores it."""
     names = subset(lib.names, cfg.eval_per_group) if cfg.eval_per_group else list(lib.names)
     ids = np.array([lib.index(n) for n in names])
 
@@ -232,12 +228,28 @@ def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resum
         return eval_metrics(evaluate(hum, tr.ac, lib, cfg.env, cfg.task, cfg.action, clips=ids,
                                      batch=cfg.sampling.eval_batch))
 
-    return runner.train(lambda d: ExpertTrainer(cfg, hum, lib, d), cfg, run, hum, kind=KIND, resume=resume,
-                        until=until, data=data, command=command, evaluate=eval_hook, label="expert")
+    start, extra = None, {}
+    if init is not None:
+        meta, start, ihum = runner.load_run(init, KIND)
+        if runner.mjcf_hash(ihum) != runner.mjcf_hash(hum):
+            raise UserError(f"--init {init}: that expert was trained on another humanoid (MJCF hash differs)")
+        extra = runner.link_record("init", init, KIND)
+
+    def make(d: Dist) -> ExpertTrainer:
+        tr = ExpertTrainer(cfg, hum, lib, d)
+        if start is not None:
+            try:
+                tr.load(start, None, None)
+            except RuntimeError as e:  # shapes: other networks or observation sizes
+                raise UserError(f"--init {init}: its networks do not fit this recipe ({str(e).splitlines()[0]})")
+        return tr
+
+    return runner.train(make, cfg, run, hum, kind=KIND, resume=resume, until=until, data=data, command=command,
+                        evaluate=eval_hook, label="expert", extra=extra)
 
 
 def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, split: str | None = None,
-                    humanoid=None, resume: bool = False, until: int | None = None) -> dict:
+                    humanoid=None, resume: bool = False, until: int | None = None, init=None) -> dict:
     """``motok control expert train``: the humanoid (the run's own on resume, else ``humanoid`` or
     the one built from ``data``, cached), the reference library of the chosen clips, then :func:`train`."""
     from motok.sim.reference import humanoid_for, load_library
@@ -245,10 +257,12 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
     run = Path(run)
     if resume and (run / "humanoid.xml").exists():
         hum = load_humanoid(run / "humanoid.xml")
+    elif init is not None:  # the warm start's humanoid, so its weights mean the same joints
+        hum = load_humanoid(Path(init) / "humanoid.xml")
     else:
         hum = load_humanoid(humanoid) if humanoid else humanoid_for(data)
     lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips, split))
-    return train(cfg, run, hum, lib, resume=resume, until=until, data=data)
+    return train(cfg, run, hum, lib, resume=resume, until=until, data=data, init=init)
 
 
 def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:

@@ -71,6 +71,40 @@ def torch_threads(n: int):
         torch.set_num_threads(before)
 
 
+def counters(tr) -> dict:
+    """The counters every trainer's ``train_state`` starts with."""
+    return {"iteration": tr.iteration, "samples": tr.samples, "wall": tr.wall}
+
+
+def load_counters(tr, shared: dict) -> None:
+    tr.iteration, tr.samples, tr.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
+
+
+def task_rng_state(mdp) -> dict:
+    """A rank's task generator, JSON (``rank_state``); :func:`load_task_rng` restores it."""
+    import json
+    return {"task_rng": json.dumps(mdp.task.rng.bit_generator.state)}
+
+
+def load_task_rng(mdp, rank: dict) -> None:
+    import json
+    mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+
+
+def finish_step(tr, stats: dict, t0: float, t1: float) -> dict:
+    """Count one iteration that started at ``t0`` (collection ended at ``t1``) and add the step's
+    timing to ``stats``: iteration, samples, training wall time, samples/s, rollout and update seconds."""
+    import time
+    n = tr.samples_per_iteration
+    tr.iteration += 1
+    tr.samples += n
+    dt = time.perf_counter() - t0
+    tr.wall += dt
+    stats.update(iteration=tr.iteration, samples=tr.samples, wall_s=round(tr.wall, 2), samples_per_s=n / dt,
+                 rollout_s=t1 - t0, update_s=dt - (t1 - t0))
+    return stats
+
+
 def rank_seed(seed: int, rank: int) -> int:
     """Rank 0 keeps ``seed`` (a single-process run is the 1-rank case); others get their own stream."""
     return seed if rank == 0 else seed + 100_003 * rank
@@ -105,11 +139,74 @@ def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: st
     return src, load_library(hum, src, control_hz=control_hz, clips=names)
 
 
+def link_record(key: str, linked_run, kind: str) -> dict:
+    """A run this one was made from (a prior's expert, a task policy's prior), for the bundle's
+    metadata: ``key``, a path the bundle stores relative to itself (so the two can move
+    together), and ``KEY_info``: its absolute path (found from anywhere on this machine) and what
+    identifies its weights."""
+    from motok.checkpoint import read_meta
+
+    meta = read_meta(linked_run, kind)
+    ex, path = meta["extra"], Path(linked_run).resolve()
+    return {key: path, f"{key}_info": {"absolute": str(path), "model_sha256": meta.get("model_sha256"),
+                                       "iteration": ex.get("iteration"), "samples": ex.get("samples")}}
+
+
+def linked_path(run, meta: dict, key: str) -> Path:
+    """Where the run linked as ``key`` (:func:`link_record`) is: relative to ``run`` first, then absolute."""
+    from motok.checkpoint import bundle_ref
+
+    found = bundle_ref(run, meta, key, required=False)
+    if found is not None and (found / "bundle.json").exists():
+        return found
+    absolute = Path(meta["extra"][f"{key}_info"]["absolute"])
+    if (absolute / "bundle.json").exists():
+        return absolute
+    raise CheckpointError(f"{run}: its {key} is neither at {meta['extra'].get(key)!r} (from the bundle) "
+                          f"nor at {absolute}")
+
+
 def checkpoint_info(meta: dict) -> dict:
     """What an evaluation says about the checkpoint it measured."""
     ex = meta["extra"]
     return {"iteration": ex["iteration"], "samples": ex["samples"], "wall_s": ex.get("last_metrics", {}).get("wall_s"),
             "mjcf_sha256": ex["mjcf_sha256"]}
+
+
+class _StopSignal:
+    """SIGTERM asks a training to stop at its next checkpoint (``kill -TERM PID``, or a session's end
+    that sends it), so a run interrupted on purpose loses nothing and resumes exactly; a second
+    SIGTERM, or any signal before training starts, ends the process at once as usual."""
+
+    def __init__(self):
+        self.requested, self._previous = False, None
+
+    def install(self) -> None:
+        import signal
+        import threading
+
+        self.requested = False
+        if threading.current_thread() is not threading.main_thread():
+            return  # signal handlers live on the main thread only
+
+        def handler(signum, frame):
+            if self.requested:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
+                signal.raise_signal(signal.SIGTERM)
+            self.requested = True
+            _progress.info("SIGTERM: stopping at the next checkpoint (send it again to stop now)")
+
+        self._previous = signal.signal(signal.SIGTERM, handler)
+
+    def restore(self) -> None:
+        import signal
+
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)
+            self._previous = None
+
+
+stop_signal = _StopSignal()
 
 
 def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, kind: str, resume: bool = False,
@@ -126,6 +223,7 @@ def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, k
         return _train(make_trainer, cfg, Path(run), hum, kind, resume, until, data, command, extra or {},
                       evaluate, label, d, tuple(fields), tuple(summary_keys))
     finally:
+        stop_signal.restore()
         shutdown_distributed(d)
         torch.set_num_threads(threads)
 
@@ -170,6 +268,7 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
                                "rank_state_sha256": hashes})
 
     wrote = False
+    stop_signal.install()
     tr.start_segment()
     bar = _progress.make_progress("samples", " ".join(f"{name} {{task.fields[{name}]}}" for name, _, _ in fields))
     if not d.main:
@@ -189,6 +288,9 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
             if tr.iteration % cfg.save_every == 0 or tr.iteration == stop:
                 save()
                 wrote = True
+                if any(gather(stop_signal.requested, d)):  # every rank stops at the same checkpoint
+                    _progress.info(f"stopped at iteration {tr.iteration} on request (SIGTERM); --resume continues")
+                    break
                 tr.start_segment()
     # Decided from state every rank shares: a file check could race rank 0's write and leave one
     # rank alone in a collective.

@@ -9,9 +9,12 @@ content x style) are dropped from the denominator, since they are not wrong matc
 - Motion side: normalized features without the 4 foot-contact channels (as Guo's movement
   encoder), a linear layer, two stride-2 convolutions (Guo's unit length of 4 frames), a small
   transformer with sinusoidal positions, masked mean pooling, a linear head.
-- Text side: a sentence embedding from a frozen encoder of :mod:`motok.text.encoders`
-  (``minilm`` by default; ``bow``, a weight-free hashed bag of words, for tests and smoke runs),
-  computed once per distinct caption and cached, then a learned MLP.
+- Text side: a sentence embedding from a frozen encoder of :mod:`motok.text.encoders`, computed
+  once per distinct caption and cached, then a learned MLP. Default ``bow``, a weight-free hashed
+  bag of words and word pairs: everything this side knows it learns from the training captions,
+  so it is independent of the GPT's frozen ``minilm`` (in Guo et al. and T2M-GPT the evaluator's
+  text encoder is not the generator's; a shared one can favour the generator). ``minilm`` (the
+  default of motok <= 0.1) remains an option.
 - Both embeddings are L2-normalized: Euclidean distance ranks exactly as the cosine the loss
   trains, so the metrics' Euclidean protocol and the training agree.
 """
@@ -43,7 +46,9 @@ UNIT = 4  # frames per motion token of the encoder (Guo's unit_length)
 
 @dataclass
 class EvaluatorConfig:
-    text_encoder: str = "minilm"  # any name motok.text.encoders knows: minilm | bow | clip
+    # any name motok.text.encoders knows: bow | minilm | clip. bow: no pretrained weights, so
+    # the evaluator's text side shares nothing with a GPT on minilm or clip (docs/eval.md).
+    text_encoder: str = "bow"
     embed_dim: int = 128
     width: int = 128
     layers: int = 2
@@ -319,6 +324,7 @@ def resolve_config(recipe=None, overrides=()) -> EvaluatorConfig:
 
 def train_evaluator(cfg: EvaluatorConfig, data_path: str | Path, run: str | Path, command: str | None = None) -> dict:
     """Train into the bundle folder ``run``; returns a summary with retrieval on ``cfg.report_split``."""
+    from motok.tokenizer.train import stats_split
     run, data_path = Path(run), Path(data_path)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
@@ -330,7 +336,7 @@ def train_evaluator(cfg: EvaluatorConfig, data_path: str | Path, run: str | Path
         report = load_split(mf, cfg.report_split) if cfg.report_split in mf.splits else None
         mean, std = mf.stats()
         meta = {"feature_dim": int(mf.h5["frames/features"].shape[1]), "num_joints": int(mf.skeleton.num_joints),
-                "fps": mf.fps}
+                "fps": mf.fps, "stats_split": stats_split(mf)}
     enc([t for caps in train.captions for t in caps])
     text_dim = len(next(iter(enc.cache.values())))
     torch.manual_seed(cfg.seed)

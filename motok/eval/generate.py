@@ -77,5 +77,6 @@ def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MCon
                  bool(tex["legacy"]))
     name = f"generation ({Path(gpt).name}, {'GT length' if cfg.gt_length else 'predicted length'})"
     ms = motion_set(out, name)
-    ms.extra.update({"gpt": str(gpt), "gpt_sha256": meta["model_sha256"], "gt_length": cfg.gt_length})
+    ms.extra.update({"gpt": str(gpt), "gpt_sha256": meta["model_sha256"], "gt_length": cfg.gt_length,
+                     "gpt_text_encoder": ex["text_encoder"]})
     return ms

@@ -35,6 +35,10 @@ class T2MConfig:
     unit_crop: bool = True  # the reference loader's crop to a multiple of 4 frames
     seed: int = 0
     physical: bool = True
+    # "unseen": only the split's captions that do not occur word for word in train_split
+    # (motok.eval.captions); clips without one are left out of every row and of the reference.
+    captions: str = "all"
+    train_split: str = "train"
     # Generation with --gpt: sets of one sample per clip (the protocol regenerates every repeat:
     # gen_sets = repeats; fewer sets are reused in turn) and the MModality samples.
     gen_sets: int = 20

@@ -16,6 +16,7 @@ import numpy as np
 
 from motok.data.dataset import MotionFile
 from motok.eval import metrics as M
+from motok.eval.captions import label_ceiling, training_captions, unseen_only
 from motok.eval.evaluator import EvaluatorError, load_evaluator
 from motok.eval.generate import generated_set
 from motok.eval.protocol import T2MConfig, evaluate_rows, physical_of
@@ -39,21 +40,46 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
     if int(ex["feature_dim"]) != ref.clips[0].shape[1]:
         raise EvaluatorError(f"{data} has {ref.clips[0].shape[1]}-d features; {evaluator} was trained on "
                              f"{ex['feature_dim']}-d ones")
+    if cfg.captions not in ("all", "unseen"):
+        raise EvaluatorError(f"captions must be all or unseen, not {cfg.captions!r}")
+    try:
+        seen = training_captions(data, cfg.train_split)
+    except EvaluatorError:
+        if cfg.captions == "unseen":
+            raise
+        seen = None  # no training split to compare with: the overlap is not defined
+    all_caps = [t for c in ref.captions for t in c]
+    overlap = None if seen is None else {"train_split": cfg.train_split, "captions": len(all_caps),
+                                         "share_in_train": sum(t in seen for t in all_caps) / len(all_caps)}
+    if cfg.captions == "unseen":
+        ref = unseen_only(ref, seen)
+        if len(ref.clips) < 2:
+            raise EvaluatorError(f"only {len(ref.clips)} {cfg.split} clip(s) have a caption that is not in "
+                                 f"{cfg.train_split}; --captions unseen needs 2+")
     rows = [ref] if real else []
     if tokenizer is not None:
         rows.append(recon_set(ref, Path(tokenizer), info["num_joints"]))
     if gpt is not None:
         rows.append(generated_set(Path(gpt), tokenizer, ref, cfg, save_generated))
     rows += [motion_set(Path(p)) for p in motions]
+    if cfg.captions == "unseen":  # generated rows already use only ref's captions; --motions rows do not
+        rows = [r if r is ref else unseen_only(r, seen) for r in rows]
     if not rows:
         raise EvaluatorError("nothing to evaluate: give --tokenizer, --gpt or --motions (or keep the real row)")
     results = evaluate_rows(ev, ref, rows, cfg)
+    ev_text = ev.meta["config"]["text_encoder"]
+    for res in results:
+        if res.get("gpt_text_encoder"):
+            # Guo et al.'s evaluator reads text with its own encoder; a frozen encoder shared with
+            # the generator can favour it in R-precision and MM-Dist.
+            res["text_side"] = "shared" if res["gpt_text_encoder"] == ev_text else "independent"
     if cfg.physical:
         for res, row in zip(results, rows):
             res["physical"] = physical_of(row, info["fps"], info["feet"])
     return {"protocol": "Guo et al. 2022 / T2M-GPT Table 1", "config": dict(cfg.__dict__),
             "evaluator": str(evaluator), "evaluator_sha256": ev.meta.get("model_sha256"),
-            "text_encoder": ev.meta["config"]["text_encoder"], "data": str(data), "split": cfg.split,
+            "text_encoder": ev_text, "data": str(data), "split": cfg.split, "captions": cfg.captions,
+            "caption_overlap": overlap, "label_ceiling": label_ceiling(ref.labels or [], cfg.batch, cfg.top_k),
             "clips": len(ref.clips), "rows": results, "seconds": round(time.perf_counter() - t0, 1)}
 
 
@@ -95,9 +121,21 @@ def markdown(report: dict) -> str:
     lines += ["| " + " | ".join([r["name"]] + _cells(r)) + " |" for r in report["rows"]]
     c = report["config"]
     lines.append("")
-    lines.append(f"{report['split']} split of `{report['data']}`, {report['clips']} clips, {c['repeats']} repeats "
-                 f"(mean ± 1.96 std/sqrt({c['repeats']})); evaluator `{report['evaluator']}` "
+    which = " (only captions that do not occur in training)" if report.get("captions") == "unseen" else ""
+    lines.append(f"{report['split']} split of `{report['data']}`, {report['clips']} clips{which}, {c['repeats']} "
+                 f"repeats (mean ± 1.96 std/sqrt({c['repeats']})); evaluator `{report['evaluator']}` "
                  f"({report['text_encoder']} text encoder).")
+    ov, ceil = report.get("caption_overlap"), report.get("label_ceiling")
+    if ov:
+        lines.append(f"{ov['share_in_train']:.1%} of the split's {ov['captions']} captions occur word for word in "
+                     f"{ov['train_split']}.")
+    if ceil:
+        lines.append(f"Label-reader ceiling (batches of {ceil['batch']}): R@1 {ceil['R@1']:.3f}, "
+                     f"R@3 {ceil.get('R@3', float('nan')):.3f}.")
+    for r in report["rows"]:
+        if r.get("text_side"):
+            lines.append(f"{r['name']}: the GPT reads text with `{r['gpt_text_encoder']}`, the evaluator with "
+                         f"`{report['text_encoder']}` ({r['text_side']} text side).")
     return "\n".join(lines)
 
 

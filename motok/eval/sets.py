@@ -29,6 +29,8 @@ class MotionSet:
     mm_clips: list[np.ndarray] = field(default_factory=list)
     joints: list[np.ndarray] | None = None  # for the physical metrics (else recovered from features)
     extra: dict = field(default_factory=dict)
+    labels: list[str] | None = None  # per clip, canonical JSON of the dataset labels (real motion)
+    mm_texts: list[str] = field(default_factory=list)  # the caption of each MModality group
 
     def for_repeat(self, r: int) -> list[int]:
         if self.sample is None:
@@ -48,7 +50,8 @@ def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
         sk = mf.skeleton
         info = {"fps": mf.fps, "feet": (tuple(sk.feet_left), tuple(sk.feet_right)), "num_joints": sk.num_joints,
                 "names": sd.names, "labels": sd.labels}
-    return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints}), info
+    return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints},
+                     labels=sd.labels), info
 
 
 def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: int | None = None) -> MotionSet:
@@ -102,7 +105,8 @@ def motion_set(path: Path, name: str | None = None) -> MotionSet:
         groups.setdefault((labels[k].get("source"), labels[k].get("text", sd.captions[k][0])), []).append(pos)
     samples = [labels[k].get("sample") for k in main]
     sample = np.array(samples, dtype=np.int64) if all(s is not None for s in samples) else None
+    multi = [(key[1], g) for key, g in groups.items() if len(g) > 1]
     return MotionSet(name or Path(path).stem, [sd.clips[k] for k in main], [sd.captions[k] for k in main],
-                     sample=sample, mm_groups=[g for g in groups.values() if len(g) > 1],
+                     sample=sample, mm_groups=[g for _, g in multi], mm_texts=[t for t, _ in multi],
                      mm_clips=[sd.clips[k] for k in mm], joints=[joints[k] for k in main],
                      extra={"num_joints": J, "motions_file": str(path)})

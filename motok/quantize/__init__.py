@@ -11,7 +11,8 @@ one module never loads the rest):
   :class:`Quantizer` base class, the straight-through estimator, the float32 region, the
   row layout and the collectives every kind shares.
 - :mod:`motok.quantize.vq`: :class:`VectorQuantizer`, kinds ``vq``, ``ema``, ``reset``,
-  ``ema_reset`` (VQ-VAE / T2M-GPT).
+  ``ema_reset`` (VQ-VAE / T2M-GPT), and how codebooks start (``QuantizerConfig.init``:
+  :data:`~motok.quantize.vq.INITS`, :func:`~motok.quantize.vq.init_method`).
 - :mod:`motok.quantize.rvq`: :class:`ResidualVQ`, kind ``rvq`` (residual VQ, MoMask).
 - :mod:`motok.quantize.fsq`: :class:`FSQuantizer`, kind ``fsq`` (Mentzer et al. 2023).
 - :mod:`motok.quantize.registry`: :data:`KINDS`, :func:`validate`, :func:`build_quantizer`.

@@ -56,7 +56,12 @@ class QuantizerConfig:
     num_codebooks: int = 1         # rvq: number of residual codebooks
     rvq_base: str = "ema_reset"    # rvq: how each residual codebook learns (one of vq.VQ_KINDS)
     quantizer_dropout: float = 1.0  # rvq: probability that a training batch uses only M ~ U{1..N} codebooks
-    kmeans_init: bool = False      # initialise codebooks by k-means on the first training batch
+    # Codebook start (see motok.quantize.vq.INITS): "uniform" U(-1/K, 1/K) for every kind (the
+    # shared default, which the physics priors rely on); "batch": encoder outputs of the first
+    # training batch; "t2m_gpt": per kind as T2M-GPT's code (uniform for vq, batch for ema, reset,
+    # ema_reset); "kmeans": Lloyd's algorithm on the first batch (same as kmeans_init=True).
+    init: str = "uniform"
+    kmeans_init: bool = False      # older spelling of init="kmeans" (the priors' configs use it)
     fsq_levels: list[int] = field(default_factory=lambda: [8, 5, 5, 5])
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from motok.quantize.base import Quantizer, QuantizerConfig
 from motok.quantize.fsq import FSQuantizer
 from motok.quantize.rvq import ResidualVQ
-from motok.quantize.vq import VQ_KINDS, VectorQuantizer
+from motok.quantize.vq import INITS, VQ_KINDS, VectorQuantizer
 
 KINDS = (*VQ_KINDS, "rvq", "fsq")
 
@@ -28,6 +28,10 @@ def validate(cfg: QuantizerConfig) -> None:
         problems.append("codebook_size, dim, num_codebooks and reset_window must be >= 1")
     if not 0.0 <= cfg.decay < 1.0 or cfg.eps < 0 or not 0.0 <= cfg.quantizer_dropout <= 1.0:
         problems.append("need 0 <= decay < 1, eps >= 0 and 0 <= quantizer_dropout <= 1")
+    if cfg.init not in INITS:
+        problems.append(f"init {cfg.init!r} is not one of {INITS}")
+    elif cfg.kmeans_init and cfg.init not in ("uniform", "kmeans"):
+        problems.append(f"kmeans_init=true contradicts init={cfg.init!r}; set init='kmeans' alone")
     if cfg.kind == "fsq" and (not cfg.fsq_levels or min(cfg.fsq_levels) < 2):
         problems.append(f"fsq_levels must be a non-empty list of integers >= 2, got {cfg.fsq_levels}")
     if problems:

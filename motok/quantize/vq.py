@@ -13,10 +13,27 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from motok.quantize.base import (QuantizeOutput, Quantizer, QuantizerConfig, all_reduce_sum, batch_shape,
-                                 channels_first, check_indices, draw_rows, fp32, straight_through, to_rows)
+                                 channels_first, check_indices, draw_rows, fp32, straight_through, to_rows,
+                                 world_size)
 
 VQ_KINDS = ("vq", "ema", "reset", "ema_reset")
+INITS = ("uniform", "batch", "t2m_gpt", "kmeans")  # QuantizerConfig.init
 KMEANS_ITERS = 10
+
+
+def init_method(cfg: QuantizerConfig, kind: str) -> str:
+    """How a codebook of ``kind`` starts: ``"uniform"``, ``"batch"`` or ``"kmeans"``.
+
+    ``init="t2m_gpt"`` follows T2M-GPT's ``models/quantize_cnn.py``: its plain ``Quantizer``
+    draws U(-1/K, 1/K) (van den Oord et al.), while ``QuantizeEMA``, ``QuantizeReset`` and
+    ``QuantizeEMAReset`` take their codes from the first training batch (``init_codebook``).
+    ``kmeans_init=True`` is the older spelling of ``init="kmeans"``.
+    """
+    if cfg.kmeans_init:
+        return "kmeans"
+    if cfg.init == "t2m_gpt":
+        return "uniform" if kind == "vq" else "batch"
+    return cfg.init
 
 
 def squared_distances(x: Tensor, codes: Tensor) -> Tensor:
@@ -55,6 +72,9 @@ class VectorQuantizer(Quantizer):
       ``reset_threshold`` are replaced by randomly chosen encoder outputs of the current batch.
       A replaced EMA code restarts with count max(threshold, 1), so it survives the next check
       only if it wins about ``threshold`` vectors.
+    - Start (:func:`init_method`): every kind first draws U(-1/K, 1/K) (which keeps the global
+      RNG draw order of fixed-seed runs); ``batch`` and ``kmeans`` then replace the codes with
+      the first training batch's (:meth:`_data_init`).
 
     Shapes: ``z`` (B, D) -> ``z_q`` (B, D), indices (B, 1); ``z`` (B, D, T) -> ``z_q``
     (B, D, T), indices (B, T, 1). Every ``(B, D, T)`` row (b, :, t) is one vector to quantize.
@@ -68,6 +88,7 @@ class VectorQuantizer(Quantizer):
         self.learned = self.kind in ("vq", "reset")
         self.uses_ema = self.kind in ("ema", "ema_reset")
         self.resets = self.kind in ("reset", "ema_reset")
+        self.init_method = init_method(cfg, self.kind)
         init = torch.empty(K, D).uniform_(-1.0 / K, 1.0 / K)  # van den Oord's init, as T2M-GPT's plain VQ
         if self.learned:
             self.embed = nn.Parameter(init)
@@ -77,8 +98,8 @@ class VectorQuantizer(Quantizer):
             self.register_buffer("ema_sum", init.clone())
         if self.kind == "reset":
             self.register_buffer("window_count", torch.zeros(K))
-        # Integer, not bool: gloo cannot broadcast bool tensors.
-        self.register_buffer("initted", torch.tensor([0 if cfg.kmeans_init else 1]))
+        # Integer, not bool: gloo cannot broadcast bool tensors. 0: codes come from the first batch.
+        self.register_buffer("initted", torch.tensor([1 if self.init_method == "uniform" else 0]))
 
     def quantize_rows(self, x: Tensor, update: bool) -> RowQuantization:
         """Rows x (n, D) float32 -> codes, indices, losses, histogram and number of codes reset.
@@ -89,7 +110,7 @@ class VectorQuantizer(Quantizer):
         """
         g = self._next_generator() if update else None
         if update and not int(self.initted):
-            self._kmeans_init(x, g)
+            self._data_init(x, g)
         idx = nearest_code(x, self.embed)
         q = self.embed[idx]
         losses = {"commit": F.mse_loss(x, q.detach()),
@@ -138,16 +159,35 @@ class VectorQuantizer(Quantizer):
         return dead.numel()
 
     @torch.no_grad()
-    def _kmeans_init(self, x: Tensor, g: torch.Generator) -> None:
-        """Lloyd's algorithm on the first batch; sums are all-reduced, so it clusters all ranks' rows."""
-        K = self.codebook_size
-        c = draw_rows(x, K, g)
-        for _ in range(KMEANS_ITERS):
-            idx = nearest_code(x, c)
-            one_hot = F.one_hot(idx, K).float()
-            packed = all_reduce_sum(torch.cat([one_hot.sum(0)[:, None], one_hot.t() @ x], 1))
-            n, s = packed[:, :1], packed[:, 1:]
-            c = torch.where(n > 0, s / n.clamp(min=1), c)  # empty clusters keep their centre
+    def _data_init(self, x: Tensor, g: torch.Generator) -> None:
+        """Codes from the first training batch ``x`` (every rank's rows), then EMA counts 1 and
+        sums equal to the codes, as T2M-GPT's ``init_codebook``.
+
+        - ``batch``: K rows of the batch. T2M-GPT takes the first K rows of its shuffled batch;
+          here K rows are drawn without replacement from all ranks' rows, so ranks agree. A
+          batch with fewer rows than codes is tiled as T2M-GPT's ``_tile`` does (every row
+          repeated; across ranks rows are drawn with replacement), and whenever the codes are
+          not distinct every code gets N(0, (0.01/sqrt(D))^2) noise, as ``_tile`` adds: exact
+          copies would tie, and all but the first copy would never win a vector.
+        - ``kmeans``: those rows refined by Lloyd's algorithm; sums are all-reduced, so it
+          clusters all ranks' rows.
+        """
+        K, n = self.codebook_size, x.shape[0]
+        if self.init_method == "batch" and n < K and world_size() == 1:
+            # T2M-GPT's _tile: every row repeated, so each row of a small batch gets a code.
+            order = torch.cat([torch.randperm(n, generator=g) for _ in range(-(-K // n))])[:K]
+            c = x[order.to(x.device)]
+        else:
+            c = draw_rows(x, K, g)
+        if self.init_method == "kmeans":
+            for _ in range(KMEANS_ITERS):
+                idx = nearest_code(x, c)
+                one_hot = F.one_hot(idx, K).float()
+                packed = all_reduce_sum(torch.cat([one_hot.sum(0)[:, None], one_hot.t() @ x], 1))
+                n, s = packed[:, :1], packed[:, 1:]
+                c = torch.where(n > 0, s / n.clamp(min=1), c)  # empty clusters keep their centre
+        elif len(c.unique(dim=0)) < K:  # c is identical on every rank, so is this decision
+            c = c + torch.randn(c.shape, generator=g).to(c) * (0.01 / self.dim ** 0.5)
         self.embed.data.copy_(c)
         if self.uses_ema:
             self.ema_sum.copy_(c)

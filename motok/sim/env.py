@@ -18,6 +18,12 @@ Bad input stays contained: targets with non-finite entries either raise before a
 stepped (``nan_actions="raise"``) or hold that environment's current pose for the step and are
 reported as ``invalid`` (``"terminate"``), the other environments stepping normally. A
 simulation MuJoCo had to reset is reported as ``diverged``.
+
+The model may hold more than the humanoid: free bodies appended after it (the thrown balls of
+``motok.sim.balls``). :attr:`qpos`, :attr:`qvel`, :attr:`bodies`, the observation and the
+actions then still describe the humanoid alone (its state is the prefix ``qpos[:, :hum.nq]``,
+``qvel[:, :hum.nv]`` of the model's), and ``set_state`` takes the humanoid's state and leaves the
+other bodies where they are; ``stepper.qpos`` and ``stepper.set_columns`` reach the rest.
 """
 
 from __future__ import annotations
@@ -55,6 +61,7 @@ class HumanoidEnv:
         self.dt = 1.0 / self.control_hz
         self.substeps = max(1, int(round(self.dt / m.opt.timestep)))
         self.num_envs = c.num_envs
+        self.nq, self.nv = self.hum.nq, self.hum.nv  # the humanoid's part of the state (all of it, for a plain model)
         self.stepper = stepper or make_stepper(c.stepper, self.hum, c.num_envs, self.substeps, c.nthread)
         self.hinge_adr = self.hum.hinge_qpos_adr
         self.ctrl_low, self.ctrl_high = m.actuator_ctrlrange[:, 0].copy(), m.actuator_ctrlrange[:, 1].copy()
@@ -81,21 +88,32 @@ class HumanoidEnv:
 
     @property
     def qpos(self) -> np.ndarray:
-        return self.stepper.qpos
+        """The humanoid's generalized positions ``(N, hum.nq)``, a live view of the stepper's."""
+        return self.stepper.qpos[:, :self.nq]
 
     @property
     def qvel(self) -> np.ndarray:
-        return self.stepper.qvel
+        return self.stepper.qvel[:, :self.nv]
 
     def observation(self) -> np.ndarray:
         """Eq. 7 of every environment at its current state, ``(N, obs_dim)`` (a copy)."""
         return self._obs.copy()
 
     def set_state(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
-        """Overwrite the full states of ``ids`` and refresh their body states and observations."""
+        """Overwrite the states of ``ids`` and refresh their body states and observations: the
+        humanoid's ``(len(ids), hum.nq)`` / ``(.., hum.nv)`` (other bodies of the model keep theirs)
+        or the model's whole ``(.., nq)`` / ``(.., nv)``. Solver warm starts are forgotten either way."""
         ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
         if ids.size and (ids.min() < 0 or ids.max() >= self.num_envs):
             raise IndexError(f"environment ids must be in 0..{self.num_envs - 1}, got {ids.tolist()}")
+        m = self.hum.model
+        qpos, qvel = np.asarray(qpos), np.asarray(qvel)
+        if (qpos.shape[-1], qvel.shape[-1]) not in ((self.nq, self.nv), (m.nq, m.nv)):
+            raise ValueError(f"states must have {self.nq} qpos and {self.nv} qvel columns (the humanoid's) or "
+                             f"{m.nq} and {m.nv} (the model's), got {qpos.shape[-1]} and {qvel.shape[-1]}")
+        if qpos.shape[-1] != m.nq:  # the humanoid's prefix only: complete the rows with the other bodies' states
+            qpos = np.concatenate([np.broadcast_to(qpos, (len(ids), self.nq)), self.stepper.qpos[ids, self.nq:]], 1)
+            qvel = np.concatenate([np.broadcast_to(qvel, (len(ids), self.nv)), self.stepper.qvel[ids, self.nv:]], 1)
         self.stepper.set_state(ids, qpos, qvel)
         if len(ids) == self.num_envs:
             sim = self.bodies = self.stepper.bodies()

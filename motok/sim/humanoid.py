@@ -192,6 +192,16 @@ class Humanoid:
     def hinge_qpos_adr(self) -> np.ndarray:
         return np.concatenate([a for a in self.qpos_adr if len(a)]).astype(np.int64)
 
+    # The humanoid's own state is the prefix qpos[:nq], qvel[:nv] of the model's (the loader checks
+    # it): a model may append other free bodies after it (motok.sim.balls), whose coordinates follow.
+    @property
+    def nq(self) -> int:
+        return 7 + len(self.hinge_qpos_adr)
+
+    @property
+    def nv(self) -> int:
+        return 6 + len(self.hinge_qpos_adr)
+
 
 def load_humanoid(path) -> Humanoid:
     """Load and check a humanoid MJCF written by :func:`motok.sim.mjcf.build_humanoid`, with one-line errors."""
@@ -246,6 +256,13 @@ def humanoid_from_model(model, path=None) -> Humanoid:
     driven = model.jnt_qposadr[model.actuator_trnid[:, 0]] if model.nu else np.zeros(0, dtype=int)
     if model.nu != len(hinges) or not np.array_equal(driven, hinges):
         raise HumanoidError(f"{where}: expected one position actuator per hinge, in skeleton order")
+    root_jnt = model.body_jntadr[ids[0]]
+    dofs = model.jnt_dofadr[model.actuator_trnid[:, 0]] if model.nu else np.zeros(0, dtype=int)
+    if model.jnt_qposadr[root_jnt] != 0 or model.jnt_dofadr[root_jnt] != 0 or \
+            not np.array_equal(np.sort(hinges), 7 + np.arange(len(hinges))) or \
+            not np.array_equal(np.sort(dofs), 6 + np.arange(len(hinges))):
+        raise HumanoidError(f"{where}: the humanoid's joints must come first in qpos and qvel "
+                            "(other bodies, such as motok.sim.balls', go after it in <worldbody>)")
     rest = model.body_pos[ids].copy()
     layout = Layout(list(skeleton.joints), skeleton.parents, rest, kinds, axes)
     return Humanoid(model, skeleton, layout, np.array(ids), qadr, meta, Path(path) if path else None)

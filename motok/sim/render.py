@@ -29,7 +29,21 @@ def to_data(v: np.ndarray) -> np.ndarray:
     return np.asarray(v)[..., [1, 2, 0]]
 
 
-def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | None, title: str | None):
+def _add_markers(scn, pos: np.ndarray, rgba: np.ndarray, radius: float) -> None:
+    """Spheres at world positions ``(K, 3)`` with colours ``(K, 4)``, as far as the scene has room."""
+    import mujoco
+
+    eye = np.eye(3).reshape(-1)
+    for p, c in zip(pos, rgba):
+        if scn.ngeom >= scn.maxgeom or not np.isfinite(p).all():
+            continue
+        mujoco.mjv_initGeom(scn.geoms[scn.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, np.array([radius, 0, 0]),
+                            np.asarray(p, dtype=np.float64), eye, np.asarray(c, dtype=np.float32))
+        scn.ngeom += 1
+
+
+def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | None, title: str | None,
+                   markers=None):
     import mujoco
 
     m = hum.model
@@ -60,6 +74,10 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
                 mujoco.mjv_addGeoms(m, dg, opt, mujoco.MjvPerturb(), mujoco.mjtCatBit.mjCAT_DYNAMIC, scn)
                 for i in range(start, scn.ngeom):
                     scn.geoms[i].rgba[:] = (0.3, 0.55, 0.95, 0.35)
+            if markers is not None:
+                pos, rgba, radius = markers
+                k = min(t, len(pos) - 1)
+                _add_markers(renderer.scene, pos[k], rgba[k], radius)
             yield _caption(renderer.render(), title)
     finally:
         renderer.close()
@@ -80,17 +98,28 @@ def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
 
 
 def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title: str | None = None,
-                      ghost: np.ndarray | None = None, size=(640, 480), backend: str = "auto") -> tuple[Path, str]:
+                      ghost: np.ndarray | None = None, size=(640, 480), backend: str = "auto",
+                      markers: np.ndarray | None = None, marker_rgba=(0.9, 0.2, 0.2, 0.8),
+                      marker_radius: float = 0.08) -> tuple[Path, str]:
     """Render ``qpos (T, nq)`` to ``out`` (.mp4 or .gif); returns the path and the backend used
-    (``mujoco`` or ``stick``). ``backend="stick"`` forces the fallback."""
+    (``mujoco`` or ``stick``). ``backend="stick"`` forces the fallback. ``markers`` ``(T, K, 3)``
+    are world points drawn as spheres (a task's targets, keyframe joints, a head target), coloured
+    by ``marker_rgba``: one colour, ``(K, 4)`` or ``(T, K, 4)``; the stick figure leaves them out."""
     out = Path(out)
     if out.suffix.lower() not in SUFFIXES:
         raise UserError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
     out.parent.mkdir(parents=True, exist_ok=True)
     size = tuple(int(s) + int(s) % 2 for s in size)
+    mk = None
+    if markers is not None:
+        pos = np.asarray(markers, dtype=np.float64)
+        if pos.ndim != 3 or pos.shape[-1] != 3:
+            raise UserError(f"markers must have shape (T, K, 3), not {pos.shape}")
+        rgba = np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,))
+        mk = (pos, rgba, float(marker_radius))
     if backend in ("auto", "mujoco"):
         try:
-            frames = _frames_mujoco(hum, qpos, size, ghost, title)
+            frames = _frames_mujoco(hum, qpos, size, ghost, title, mk)
             first = next(frames)
         except Exception as e:  # no GL at all (no EGL/OSMesa, no display): draw the stick figure instead
             if backend == "mujoco":

@@ -27,6 +27,12 @@ class Stepper(Protocol):
     def set_state(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Overwrite full states (and forget solver warm starts, so a reset env is a fresh env)."""
 
+    def set_columns(self, ids: np.ndarray, qcols: np.ndarray, qpos: np.ndarray, vcols: np.ndarray,
+                    qvel: np.ndarray) -> None:
+        """Overwrite some coordinates of ``ids``: ``qpos[ids, qcols]``, ``qvel[ids, vcols]`` (columns
+        ``(w,)`` for every row or ``(len(ids), w)`` per row), keeping the rest of their state, warm
+        starts included (a thrown ball of ``motok.sim.balls`` leaves the humanoid's solve alone)."""
+
     def step(self, ctrl: np.ndarray) -> np.ndarray:
         """Advance every environment by ``substeps`` with ``ctrl (N, nu)`` held; returns a
         ``(N,)`` mask of environments whose simulation diverged (MuJoCo reset them)."""
@@ -81,6 +87,11 @@ class RolloutStepper:
         self.state[ids, self._v:self._v + self.model.nv] = qvel
         self.state[ids, self._t] = 1.0  # rollout itself starts every call from a zero warm start
 
+    def set_columns(self, ids, qcols, qpos, vcols, qvel) -> None:
+        rows = np.asarray(ids)[:, None]
+        self.state[rows, self._q + np.asarray(qcols)] = qpos
+        self.state[rows, self._v + np.asarray(vcols)] = qvel
+
     def step(self, ctrl: np.ndarray) -> np.ndarray:
         self._ctrl[:] = ctrl[:, None]
         t0 = self.state[:, self._t].copy()
@@ -125,6 +136,11 @@ class BatchStepper:
     def set_state(self, ids, qpos, qvel) -> None:
         self.qpos[ids], self.qvel[ids], self._warm[ids] = qpos, qvel, 0.0
         self.b.forward(np.asarray(ids), stage=self._vel)
+
+    def set_columns(self, ids, qcols, qpos, vcols, qvel) -> None:
+        rows = np.asarray(ids)[:, None]
+        self.qpos[rows, qcols], self.qvel[rows, vcols] = qpos, qvel
+        self.b.forward(np.unique(ids), stage=self._vel)  # derived fields current, as after set_state (rows may repeat)
 
     def step(self, ctrl: np.ndarray) -> np.ndarray:
         from mujoco.batch import SimulationError

@@ -42,7 +42,10 @@ register_kind(KIND, (1,))
 @dataclass
 class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
-    quantizer: QuantizerConfig = field(default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128))
+    # init="t2m_gpt": codebooks start as in T2M-GPT's code (uniform for vq, the first batch for
+    # the EMA and reset kinds); "uniform" is the start of motok <= 0.1 for every kind.
+    quantizer: QuantizerConfig = field(
+        default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128, init="t2m_gpt"))
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     iterations: int = 2000
@@ -69,13 +72,21 @@ class TrainData:
     lengths: torch.Tensor  # (C,) frames of each usable clip (>= window)
     mean: np.ndarray
     std: np.ndarray
-    meta: dict  # skeleton, offsets, fps, legacy, num_joints, dataset hash
+    meta: dict  # skeleton, offsets, fps, legacy, num_joints, stats_split
 
 
 def dataset_meta(mf: MotionFile) -> dict:
     return {"skeleton": mf.skeleton.to_dict(), "offsets": np.asarray(mf.offsets).tolist(), "fps": mf.fps,
             "legacy": mf.legacy, "num_joints": int(mf.skeleton.num_joints),
-            "feature_dim": int(mf.h5["frames/features"].shape[1])}
+            "feature_dim": int(mf.h5["frames/features"].shape[1]), "stats_split": stats_split(mf)}
+
+
+def stats_split(mf: MotionFile) -> str:
+    """The split the data set's mean/std were computed over, as preprocessing recorded it
+    ("train", or "all" when no clip was in train); "unknown" for files that do not say."""
+    st = mf.h5.get("stats")
+    split = st.attrs.get("split") if st is not None else None
+    return (split.decode() if isinstance(split, bytes) else str(split)) if split is not None else "unknown"
 
 
 def load_train_data(path: str | Path, split: str, window: int) -> TrainData:
@@ -169,7 +180,9 @@ def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: b
     if not resume:
         return check_config(load_config(TrainConfig, recipe, overrides))
     meta, _, _ = load_bundle(run, KIND)
-    saved = meta["config"]
+    # Through the dataclasses, so keys newer than the bundle get their defaults (an older run
+    # has no quantizer.init: it started uniform, QuantizerConfig's default).
+    saved = to_dict(from_dict(TrainConfig, copy.deepcopy(meta["config"])))
     # A deep copy: load_config copies the base shallowly and --set writes into nested sections.
     cfg = load_config(TrainConfig, None, overrides, base=copy.deepcopy(saved))
     if recipe is not None:
@@ -270,7 +283,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
     acc: dict[str, float] = {}
     n_acc, t_log, last = 0, time.perf_counter(), {}
     dev_meta = {**data.meta, "dataset": Path(data_path), "dataset_sha256": data_hash,
-                "stats_split": "train", "rate": model.rate, "num_codebooks": model.num_codebooks,
+                "rate": model.rate, "num_codebooks": model.num_codebooks,
                 "codebook_size": int(model.quantizer.codebook_size), "code_dim": int(model.quantizer.dim)}
 
     def save(it: int):

@@ -16,6 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motok.errors import UserError
+
+
+def check_non_negative(cfg, label: str) -> None:
+    """Every field of a reward config (weights, exponents) must be >= 0: one-line error naming it."""
+    for name, v in vars(cfg).items():
+        if not v >= 0:
+            raise UserError(f"{label}: {name} must be >= 0, got {v}")
+
 
 @dataclass
 class ImitationConfig:

@@ -1,0 +1,76 @@
+"""``motok control train --task T --prior PRIOR`` (a high-level policy over a frozen prior) and
+``motok control perturb`` (thrown balls at a trained policy). Arguments only; the work is in
+``motok.control.task_train`` and ``motok.control.perturb``. :func:`register` adds the commands
+to the ``motok control`` app; ``motok control eval --task T --run RUN`` is in ``cli/priors.py``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from motok.cli.common import JsonOut, Resume, Sets, data_option, input_option, output_option, recipe_option, report, run
+from motok.cli.conventions import examples
+
+TASK_NAMES = "navigation | inbetween | hmd"
+
+
+def train_cmd(
+    task: Optional[str] = typer.Option(None, "--task", help=f"The task: {TASK_NAMES} (default: the recipe's)."),
+    prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`), kept frozen."),
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Choose codes in the first M codebooks "
+                                            "(residual priors; default: the recipe's, else all)."),
+    out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
+    recipe: Optional[Path] = recipe_option("recipes/control/task_*.yaml"),
+    sets: list[str] = Sets,
+    data: Optional[Path] = data_option("Dataset of the start states and references (default: the prior's).",
+                                       required=False),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
+                                        "prior's clips)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
+    resume: bool = Resume,
+    until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (--resume continues)."),
+    as_json: bool = JsonOut,
+):
+    """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
+    from motok.config import load_config
+    from motok.control.task_train import TaskTrainConfig, train_from_prior
+
+    cfg = run(load_config, TaskTrainConfig, recipe, sets)
+    summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,
+                  split=split, resume=resume, until=until)
+    report(summary, as_json, f"control train {cfg.task if task is None else task}")
+
+
+def perturb_cmd(
+    run_dir: Path = input_option("--run", help="A control-task run folder (from `control train`), e.g. navigation."),
+    episodes: int = typer.Option(64, "-n", "--num-samples", help="Episodes to run under fire."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the throws and of the task's starts and targets."),
+    period: float = typer.Option(0.3, "--period", help="Seconds between throws (the paper's 0.3)."),
+    render: Optional[Path] = output_option("--render", help="Video of the first episode with the balls "
+                                           "(.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
+    as_json: bool = JsonOut,
+):
+    """Thrown balls (10 cm, 4.2 kg, 10-20 m/s from 1 m) at a trained policy, zero-shot: hits, falls, recoveries."""
+    from motok.control.perturb import PerturbConfig, perturb_run
+
+    res = run(lambda: perturb_run(run_dir, episodes=episodes, seed=seed, render=render,
+                                  cfg=PerturbConfig(period=period)))
+    if as_json:
+        res.pop("provenance")
+        report(res, True, "")
+        return
+    report({k: v for k, v in res.items() if isinstance(v, (int, float, str)) and k not in ("kind", "schema_version")},
+           False, f"control perturb {run_dir}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("perturb", epilog=examples(
+        "motok control perturb --run runs/nav_hybrid -n 64 --render nav_balls.mp4",
+        "motok control perturb --run runs/nav_hybrid --period 0.6 --json"))(perturb_cmd)
+    app.command("train", epilog=examples(
+        "motok control train --task navigation --prior runs/prior_hybrid --codebooks 1 "
+        "--recipe recipes/control/task_navigation.yaml -o runs/nav_hybrid",
+        "motok control train --task navigation --prior runs/prior_hybrid -o runs/nav_hybrid --resume --until 1000",
+    ))(train_cmd)

@@ -1,0 +1,150 @@
+"""Motion in-betweening terms (hybrid-latent paper, appendix C.1, Eq. 12-14).
+
+A 4 s window of a reference clip holds ``K`` keyframes; the character starts in the first and must
+pass through the others at their frames, the last being the window's last frame.
+
+* :func:`sample_keyframes`: the window's first and last frames plus ``K - 2`` sorted random frames
+  between them, consecutive keyframes at least ``min_gap`` frames apart (the fork's
+  ``full_random_long`` style, its default for training and the one it forces for testing;
+  ``min_gap`` = 15 frames there, 0.5 s at 30 Hz);
+* :func:`next_keyframe`: which keyframe is the next to reach, and :func:`time_encoding`, the
+  sinusoidal encoding of the frames left until it (Eq. 13);
+* :func:`keyframe_goal`, Eq. 12: for each goal keyframe and every body, the position and rotation
+  (6D) differences keyframe - simulation in the heading frame. It is Eq. 9's difference
+  (``observations.imitation_goal``) without the velocity parts, so the rotation difference is
+  conjugated into the heading frame as there; the fork left-multiplies only;
+* :func:`inbetween_errors` / :func:`inbetween_reward`, Eq. 14: the fork's "deepmimic" reward,
+  a weighted **sum** ``0.65 exp(-2 e_q) + 0.1 exp(-0.1 e_qd) + 0.15 exp(-40 e_ee) + 0.1 exp(-10 e_root)``
+  with means over hinges and end effectors and *global* end-effector positions, against the
+  reference at **every frame** of the window, not only at the keyframes (the fork's
+  ``_compute_reward`` compares with the reference buffer at the current frame on every step). It
+  is not Eq. 10's product: the fork's in-betweening recipe selects ``imitationRewStyle: deepmimic``.
+  The fork also rescales the reward by ``T / (k_last - k_0 + 1)``, which is 1 for these keyframes.
+
+The time encoding (fork: ``PositionalEncoding: time``, after Harvey et al. 2020, "Robust motion
+in-betweening"): ``E[t, 2i] = sin(t w_i)``, ``E[t, 2i + 1] = cos(t w_i)``, ``w_i = 10000^(-2i / d)``,
+of the same dimension ``d`` as the keyframe goal and **added** to it, constant for ``t >= T - 4``
+(``T`` the window's frames; the fork copies row ``T - 4`` into the table's last four rows).
+
+Sources: the formulas and constants are read from the fork's code (``humanoid_imitate_keyframes.py``,
+``humanoid_imitate.py``, ``LafanInbetweening.yaml``); the equation numbers are the paper's. Its
+``MINIMUM_KEYFRAME_INTERVAL = 15`` is commented "1s" but is 0.5 s at its 30 Hz control rate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from motok.control.mdp.observations import imitation_goal
+from motok.control.mdp.rewards import check_non_negative
+from motok.errors import UserError
+from motok.sim.obs import Bodies
+from motok.sim.reference import ReferenceLibrary
+
+KEYFRAME_FEATURES = 9  # per body: position difference (3) + rotation difference (6D)
+
+
+def reference_bodies(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndarray) -> Bodies:
+    """Reference body states at ``frames`` of ``clips`` (broadcast together; clamped to each clip's
+    last frame by ``frame_index``)."""
+    g = lib.frame_index(clips, frames)
+    return Bodies(lib.body_pos[g], lib.body_vel[g], lib.body_angvel[g], quat=lib.body_quat[g])
+
+
+def given_starts(lib: ReferenceLibrary, clips, frames, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Clip indices and start frames ``(n,)`` from given ``clips`` (names or indices) and ``frames``
+    (0 by default), each broadcast to ``n`` environments."""
+    c = np.array([lib.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))], dtype=np.int64)
+    return c, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()
+
+
+def check_keyframe_count(count: int, window: int, min_gap: int, where: str = "inbetween task") -> None:
+    """``count`` keyframes ``min_gap`` frames apart must fit in a ``window``-frame window."""
+    if count < 2:
+        raise UserError(f"{where}: num_keyframes must be >= 2 (the start and the window's end), got {count}")
+    if min_gap < 1:
+        raise UserError(f"{where}: min_keyframe_gap_seconds must give at least one frame, got {min_gap} frames")
+    if (count - 1) * min_gap > window - 1:
+        raise UserError(f"{where}: {count} keyframes {min_gap} frames apart do not fit in a {window}-frame "
+                        f"window; lower num_keyframes or min_keyframe_gap_seconds, or raise window_seconds")
+
+
+def sample_keyframes(rng: np.random.Generator, n: int, count: int, window: int, min_gap: int) -> np.ndarray:
+    """``(n, count)`` keyframe offsets within a ``window``-frame window: ``0``, ``count - 2`` random
+    frames, ``window - 1``; increasing, consecutive ones at least ``min_gap`` apart.
+
+    The interior ones are sorted uniform draws from the slack ``window - 1 - (count - 1) min_gap``,
+    shifted by ``min_gap`` per rank, which keeps every gap (the last one too) >= ``min_gap``."""
+    check_keyframe_count(count, window, min_gap)
+    slack = window - 1 - (count - 1) * min_gap
+    mid = np.sort(rng.integers(0, slack + 1, size=(n, count - 2)), axis=1) + min_gap * np.arange(1, count - 1)
+    return np.concatenate([np.zeros((n, 1), np.int64), mid.astype(np.int64), np.full((n, 1), window - 1)], 1)
+
+
+def check_keyframes(keyframes: np.ndarray, window: int, where: str = "inbetween task") -> None:
+    """Given keyframe offsets ``(n, K)`` must start at 0 (the start state), increase strictly and
+    stay inside the window."""
+    k = np.asarray(keyframes)
+    if k.ndim != 2 or k.shape[1] < 2:
+        raise UserError(f"{where}: keyframes must have shape (environments, K >= 2), got {k.shape}")
+    if (k[:, 0] != 0).any() or (np.diff(k, axis=1) <= 0).any() or (k[:, -1] > window - 1).any():
+        raise UserError(f"{where}: keyframes must be offsets 0 < ... <= {window - 1} within the window, "
+                        f"strictly increasing and starting at 0, got {k.tolist()}")
+
+
+def next_keyframe(keyframes: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Index of the next keyframe to reach at window offset ``t``: the first one after ``t`` (so the
+    goal moves on at the frame a keyframe is reached), the last one once every keyframe is past."""
+    return np.minimum((keyframes <= t[:, None]).sum(1), keyframes.shape[1] - 1)
+
+
+def time_encoding(tta: np.ndarray, dim: int, cap: int) -> np.ndarray:
+    """Eq. 13, ``(n, dim)`` sinusoidal encoding of the frames ``tta`` until the next keyframe,
+    constant for ``tta >= cap`` (see the module docstring)."""
+    t = np.minimum(np.asarray(tta, dtype=np.float64), cap)[:, None]
+    w = np.exp(np.arange(0, dim, 2) * (-np.log(10000.0) / dim))
+    out = np.empty((len(t), dim))
+    out[:, 0::2] = np.sin(t * w)
+    out[:, 1::2] = np.cos(t * w[:dim // 2])
+    return out
+
+
+def keyframe_goal(sim: Bodies, keys: Bodies) -> np.ndarray:
+    """Eq. 12, ``(N, K * J * 9)`` from sim bodies ``(N, J, .)`` and keyframe bodies ``(N, K, J, .)``:
+    per keyframe and body the position and 6D rotation differences in the heading frame."""
+    N, K, J = keys.pos.shape[:3]
+    return imitation_goal(sim, keys).reshape(N, K, J, 15)[..., :KEYFRAME_FEATURES].reshape(N, -1)
+
+
+@dataclass
+class InbetweenRewardConfig:
+    """Eq. 14 weights and exponents (the fork's ``compute_deepmimic_reward``)."""
+
+    w_q: float = 0.65
+    k_q: float = 2.0
+    w_qd: float = 0.1
+    k_qd: float = 0.1
+    w_ee: float = 0.15
+    k_ee: float = 40.0
+    w_root: float = 0.1
+    k_root: float = 10.0
+
+    def __post_init__(self):
+        check_non_negative(self, "inbetween reward")
+
+
+def inbetween_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict[str, np.ndarray]:
+    """Eq. 14's errors ``(N,)``: mean squared hinge angle and velocity errors, mean over the end
+    effectors ``ee`` of their squared (global) position errors, squared root position error."""
+    return {"q": ((q - q_ref) ** 2).mean(-1), "qd": ((qd - qd_ref) ** 2).mean(-1),
+            "ee": ((pos[:, ee] - ref_pos[:, ee]) ** 2).sum(-1).mean(-1),
+            "root": ((pos[:, 0] - ref_pos[:, 0]) ** 2).sum(-1)}
+
+
+def inbetween_reward(err: dict[str, np.ndarray], cfg: InbetweenRewardConfig) -> dict[str, np.ndarray]:
+    """Eq. 14: ``r_task = sum_k w_k exp(-k_k e_k)`` and its unweighted terms ``r_q``, ``r_qd``, ``r_ee``, ``r_root``."""
+    r = {f"r_{k}": np.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("q", "qd", "ee", "root")}
+    r["r_task"] = sum(getattr(cfg, f"w_{k}") * r[f"r_{k}"] for k in ("q", "qd", "ee", "root"))
+    return r

@@ -1,0 +1,93 @@
+"""Navigation terms (hybrid-latent paper, appendix C.3): reach a point on the floor.
+
+Pure functions on ``(N, ...)`` arrays, composed by ``motok.control.tasks.navigation``:
+
+* :func:`heading_frame_target`, Eq. 15: the target minus the root, planar, rotated into the
+  root's heading frame (yaw only): ``x`` ahead of the character, ``y`` on its left.
+* :func:`navigation_reward`, Eq. 16: ``r = w_pos exp(-k_pos d^2) + w_vel exp(-max(0, u - v)^2)``
+  with ``d`` the planar root-to-target distance and ``v`` the root's speed toward the target, the
+  velocity term being 1 within the reach radius (standing at the goal is then the best one can do).
+* :func:`sample_targets`: a new target uniform in direction, distance uniform in ``[min, max]``.
+* :func:`head_fell`: the fall test, skipped on the first step after a reset.
+
+Where the authors' fork (``andreazhangyh/hybrid_latent_prior``,
+``isaacgymenvs/tasks/humanoid_navigation.py``) fixes details the paper leaves open, we follow it:
+``v`` counts only the forward part of the velocity (its component along the heading, clamped at
+0, so side-stepping or walking backwards toward the target earns nothing), targets lie 5-10 m
+away (the paper says "within 10 m"), the distance is uniform (not uniform over the annulus'
+area) and the first step after a reset is not tested for a fall.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from motok.control.mdp.terminations import fell
+from motok.errors import UserError
+from motok.rotations import quat_to_matrix
+from motok.sim.obs import heading, unyaw
+
+
+def root_heading(root_quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cosine and sine ``(N,)`` of the yaw of the root's forward (+X) axis, from MuJoCo ``(w, x, y, z)``
+    quaternions ``(N, 4)`` or rotation matrices ``(N, 3, 3)`` (what ``Bodies.rot`` holds for free)."""
+    q = np.asarray(root_quat, dtype=np.float64)
+    return heading(q if q.shape[-2:] == (3, 3) else quat_to_matrix(q))
+
+
+def planar_distance(root_pos: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``(N,)`` floor distance from the root (``(N, >= 2)``, world) to the target ``(N, 2)``."""
+    return np.hypot(*(np.asarray(target) - np.asarray(root_pos)[:, :2]).T)
+
+
+def heading_frame_target(root_pos: np.ndarray, root_quat: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Eq. 15, ``(N, 2)``: ``target - root_xy`` turned by minus the root's heading.
+
+    ``+x`` is ahead of the character and ``+y`` on its left (MuJoCo: Z up, facing +X at rest), so
+    a root yawed by +90 degrees (facing world +Y) sees a target 3 m along world +X at ``(0, -3)``,
+    on its right."""
+    c, s = root_heading(root_quat)
+    disp = np.asarray(target, dtype=np.float64) - np.asarray(root_pos)[:, :2]
+    return unyaw(c, s, np.concatenate([disp, np.zeros((len(disp), 1))], -1))[:, :2]
+
+
+def navigation_reward(root_pos: np.ndarray, root_vel: np.ndarray, root_quat: np.ndarray, target: np.ndarray,
+                      cfg) -> dict[str, np.ndarray]:
+    """Eq. 16: ``{"r_task", "r_pos", "r_vel"}``, each ``(N,)``.
+
+    ``root_pos``/``root_vel`` world ``(N, 3)`` (only x, y are used), ``root_quat`` ``(N, 4)``
+    ``(w, x, y, z)`` (or ``(N, 3, 3)`` matrices), ``target`` ``(N, 2)``; ``cfg`` any object with ``speed`` (u, m/s),
+    ``reach_radius`` (m), ``k_pos``, ``w_pos``, ``w_vel`` (``NavigationTaskConfig``).
+
+    ``v = (max(0, vel . h) h) . (target - root) / d`` with ``h`` the unit heading: the speed
+    toward the target of the forward part of the root's planar velocity (the fork's form)."""
+    c, s = root_heading(root_quat)
+    disp = np.asarray(target, dtype=np.float64) - np.asarray(root_pos)[:, :2]
+    d = np.hypot(disp[:, 0], disp[:, 1])
+    vel = np.asarray(root_vel)
+    forward = np.maximum(c * vel[:, 0] + s * vel[:, 1], 0.0)
+    # At d = 0 the direction is undefined; the velocity term is 1 there anyway (within the radius).
+    toward = forward * (c * disp[:, 0] + s * disp[:, 1]) / np.maximum(d, 1e-9)
+    near = d < cfg.reach_radius
+    r_pos = np.exp(-cfg.k_pos * d * d)
+    r_vel = np.where(near, 1.0, np.exp(-np.maximum(cfg.speed - toward, 0.0) ** 2))
+    return {"r_task": cfg.w_pos * r_pos + cfg.w_vel * r_vel, "r_pos": r_pos, "r_vel": r_vel}
+
+
+def sample_targets(root_xy: np.ndarray, rng: np.random.Generator, min_dist: float, max_dist: float) -> np.ndarray:
+    """``(N, 2)`` targets around ``root_xy`` ``(N, >= 2)``: direction uniform on the circle, distance
+    uniform in ``[min_dist, max_dist]`` m (the fork's draw; the paper says only "within 10 m")."""
+    if not 0.0 <= min_dist <= max_dist:
+        raise UserError(f"target distances need 0 <= min_dist <= max_dist, got min_dist={min_dist}, "
+                        f"max_dist={max_dist}")
+    root_xy = np.asarray(root_xy, dtype=np.float64)[:, :2]
+    u = rng.random((len(root_xy), 2))
+    angle, dist = 2.0 * np.pi * u[:, 0], min_dist + (max_dist - min_dist) * u[:, 1]
+    return root_xy + dist[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+
+
+def head_fell(head_height: np.ndarray, steps: np.ndarray, min_height: float) -> np.ndarray:
+    """``(N,)``: the head below ``min_height`` m, from the second control step of an episode on
+    (``steps`` counts the steps since the reset, 1 on the first): a reference start state can
+    still be settling onto the floor during its first step (the fork's grace step)."""
+    return fell(np.asarray(head_height), min_height) & (np.asarray(steps) > 1)

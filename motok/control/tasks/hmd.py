@@ -1,0 +1,116 @@
+"""The head-mounted-device tracking task (hybrid-latent paper, appendix C.2): follow a reference
+head trajectory, as a VR headset reports it, with the whole body.
+
+* reset: a random clip and start frame (clips drawn in proportion to their usable length) or given
+  ones; the start state is the reference there (``mdp.resets``);
+* goal: the head's position, rotation, velocity and angular velocity differences to the next
+  ``goal_frames`` reference frames (5: the frame the coming step reaches and 4 after it) in the
+  root's heading frame (``mdp.head.head_goal``);
+* reward: the head-only PHC-form reward against the reference head (``mdp.head.head_reward``),
+  0 after a diverged simulation or an invalid action;
+* terminated: the head more than ``termination_distance`` from the reference head (1 m, the
+  paper's; the fork's recipe uses 1.5 m), a diverged simulation or an invalid action;
+  truncated: ``episode_seconds`` (5 s) played, or the clip's end for a given start near it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from motok.control.mdp.head import HEAD_FEATURES, HeadRewardConfig, head_distance, head_errors, head_goal, \
+    head_lost, head_reward
+from motok.control.mdp.keyframes import given_starts, reference_bodies
+from motok.control.mdp.resets import check_start_frames, reference_state, sample_starts
+from motok.control.mdp.terminations import body_distances, time_limit
+from motok.errors import UserError
+from motok.sim.env import HumanoidEnv
+from motok.sim.reference import ReferenceLibrary
+
+
+@dataclass
+class HMDTaskConfig:
+    episode_seconds: float = 5.0
+    goal_frames: int = 5  # reference head frames ahead in the goal (the fork's numNextObsSteps)
+    termination_distance: float = 1.0  # m, head to reference head (paper C.2; the fork's recipe: 1.5)
+    early_termination: bool = True
+    reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)
+
+    def __post_init__(self):
+        if not self.episode_seconds > 0:
+            raise UserError(f"hmd task: episode_seconds must be > 0, got {self.episode_seconds}")
+        if self.goal_frames < 1:
+            raise UserError(f"hmd task: goal_frames must be >= 1, got {self.goal_frames}")
+        if not self.termination_distance > 0:
+            raise UserError(f"hmd task: termination_distance must be > 0, got {self.termination_distance}")
+
+
+class HMDTask:
+    """Episode state per environment: ``clip``, ``start``, ``frame`` (the reference frame the
+    simulation is at), ``steps``, ``limit``; ``head`` is the tracked body (the skeleton's head)."""
+
+    reward_key = "r_task"
+
+    def __init__(self, cfg: HMDTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
+        if abs(lib.fps - env.control_hz) > 1e-6:
+            raise UserError(f"the reference library is at {lib.fps:g} Hz but the control rate is {env.control_hz:g} Hz")
+        self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
+        N = env.num_envs
+        self.max_steps = max(1, int(round(cfg.episode_seconds * env.control_hz)))
+        self.head = int(env.hum.skeleton.head)
+        self.goal_dim = cfg.goal_frames * HEAD_FEATURES
+        self.clip, self.start, self.frame = (np.zeros(N, dtype=np.int64) for _ in range(3))
+        self.steps, self.limit = np.zeros(N, dtype=np.int64), np.ones(N, dtype=np.int64)
+        self._goal = np.zeros((N, self.goal_dim))
+        self.clip_p: np.ndarray | None = None  # start-clip probabilities (None: by usable length)
+
+    def _ahead(self, ids) -> np.ndarray:
+        return self.frame[ids, None] + np.arange(1, self.cfg.goal_frames + 1)
+
+    def reset(self, ids: np.ndarray, clips=None, frames=None) -> None:
+        """Random clips (by ``clip_p``) and start frames leaving a whole episode from the task's
+        generator, unless ``clips``/``frames`` (names or indices; frame 0 by default) are given."""
+        K, L = self.cfg.goal_frames, self.lib
+        if clips is None:
+            c, f = sample_starts(L, len(ids), self.rng, self.max_steps + K, self.clip_p)
+        else:
+            c, f = given_starts(L, clips, frames, len(ids))
+        check_start_frames(L, c, f, K)
+        self.env.set_state(ids, *reference_state(L, c, f))
+        self.clip[ids], self.start[ids], self.frame[ids], self.steps[ids] = c, f, f, 0
+        # The last step's goal still reads K real frames ahead: frame + K <= the clip's last frame.
+        self.limit[ids] = np.minimum(self.max_steps, L.lengths[c] - 1 - f - K)
+        ahead = reference_bodies(L, self.clip[ids, None], self._ahead(ids))
+        self._goal[ids] = head_goal(self.env.bodies.take(ids), ahead, self.head)
+
+    def goal(self) -> np.ndarray:
+        return self._goal.copy()
+
+    def markers(self) -> np.ndarray:
+        """``(N, 1, 3)`` the reference head at the current frame (world), for videos."""
+        return self.lib.body_pos[self.lib.frame_index(self.clip, self.frame), self.head][:, None]
+
+    def next_reference(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(qpos, qvel)`` of the reference frame the coming step should reach (the action base)."""
+        g = self.lib.frame_index(self.clip, self.frame + 1)
+        return self.lib.qpos[g], self.lib.qvel[g]
+
+    def update(self, diverged: np.ndarray, invalid: np.ndarray):
+        env, c = self.env, self.cfg
+        self.frame += 1
+        self.steps += 1
+        N = env.num_envs
+        refs = reference_bodies(self.lib, self.clip[:, None], self.frame[:, None] + np.arange(c.goal_frames + 1))
+        sim, ref = env.bodies, refs.take((slice(None), 0))
+        bad = diverged | invalid
+        rewards = {k: np.where(bad, 0.0, v) for k, v in head_reward(head_errors(sim, ref, self.head), c.reward).items()}
+        dist = head_distance(sim.pos, ref.pos, self.head)
+        lost = head_lost(dist, c.termination_distance) if c.early_termination else np.zeros(N, dtype=bool)
+        terminated = lost | bad
+        truncated = time_limit(self.steps, self.limit) & ~terminated
+        self._goal = head_goal(sim, refs.take((slice(None), slice(1, None))), self.head)
+        info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "head_error": dist,
+                "mean_body_error": body_distances(sim, ref).mean(-1), "head_lost": lost, "diverged": diverged,
+                "invalid_action": invalid, "episode_steps": self.steps.copy()}
+        return rewards, terminated, truncated, info

@@ -1,0 +1,193 @@
+"""The motion in-betweening task (hybrid-latent paper, appendix C.1): pass through keyframes of a
+reference window at their frames.
+
+* reset: a random clip and window start (clips drawn in proportion to their usable length) or given
+  ones; the start state is the reference at the window's first frame (``mdp.resets``), which is
+  also the first keyframe. ``num_keyframes`` keyframes in all (``mdp.keyframes.sample_keyframes``:
+  the start, random interior frames at least ``min_keyframe_gap_seconds`` apart, the window's last
+  frame). Training uses 4 per 4 s window (C.1); the paper's Table 2 evaluates with 5 per 4 s, which
+  ``eval_keyframes`` holds and ``motok.control.task_eval.evaluate_inbetween`` switches to;
+* goal: Eq. 12 position and rotation differences to two keyframes, plus (added to them, as the
+  fork does) the Eq. 13 sinusoidal encoding of the frames left until the next keyframe.
+  ``goal_keyframes="next"``: the next keyframe to reach and the one after it (the last keyframe
+  twice on the last stretch); ``"previous"``: the last keyframe passed and the next one, which is
+  what the fork's code feeds (``_curr_keyframe_indices`` and ``+ 1``);
+* reward: Eq. 14 against the reference at every frame (``mdp.keyframes.inbetween_reward``), 0 after
+  a diverged simulation or an invalid action;
+* terminated: the bodies too far from the reference (``mdp.terminations.tracking_failure``: the
+  fork's ``error_mean``, mean body distance > 0.5 m; the fork leaves the feet out of that mean),
+  a diverged simulation or an invalid action; truncated: the last keyframe's frame is reached.
+
+Book-keeping that differs from the fork: the goal moves on to the next keyframe at the frame a
+keyframe is reached (the fork shows the reached keyframe for one more step, with 0 frames left),
+and the episode end is a truncation (the fork flags it as both a timeout and a termination).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfig, check_keyframe_count,
+                                         check_keyframes, given_starts, inbetween_errors, inbetween_reward,
+                                         keyframe_goal, next_keyframe, reference_bodies, sample_keyframes,
+                                         time_encoding)
+from motok.control.mdp.resets import reference_state, sample_starts
+from motok.control.mdp.terminations import MODES, body_distances, time_limit, tracking_failure
+from motok.errors import UserError
+from motok.sim.env import HumanoidEnv
+from motok.sim.obs import Bodies
+from motok.sim.reference import ReferenceLibrary
+
+GOAL_KEYFRAMES = ("next", "previous")
+TIME_ENCODINGS = ("add", "concat", "none")
+
+
+@dataclass
+class InbetweenTaskConfig:
+    window_seconds: float = 4.0
+    num_keyframes: int = 4  # per window, the start and the window's last frame included (C.1, training)
+    eval_keyframes: int = 5  # per window in evaluation (Table 2)
+    min_keyframe_gap_seconds: float = 0.5  # the fork's 15 frames at 30 Hz
+    goal_keyframes: str = "next"  # "next": next + the one after; "previous": last passed + next (the fork's)
+    time_encoding: str = "add"  # "add" to the keyframe goal (the fork's), "concat" time_encoding_dim numbers, "none"
+    time_encoding_dim: int = 16  # only with "concat"
+    termination: str = "mean"  # body distance test: "mean" over bodies or "any" body
+    termination_distance: float = 0.5  # m, from the reference
+    early_termination: bool = True
+    reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)
+
+    def __post_init__(self):
+        if not self.window_seconds > 0:
+            raise UserError(f"inbetween task: window_seconds must be > 0, got {self.window_seconds}")
+        if self.goal_keyframes not in GOAL_KEYFRAMES:
+            raise UserError(f"inbetween task: goal_keyframes must be 'next' or 'previous', not {self.goal_keyframes!r}")
+        if self.time_encoding not in TIME_ENCODINGS:
+            raise UserError(f"inbetween task: time_encoding must be 'add', 'concat' or 'none', "
+                            f"not {self.time_encoding!r}")
+        if self.time_encoding == "concat" and self.time_encoding_dim < 1:
+            raise UserError(f"inbetween task: time_encoding_dim must be >= 1, got {self.time_encoding_dim}")
+        if self.termination not in MODES:
+            raise UserError(f"inbetween task: termination must be 'any' or 'mean', not {self.termination!r}")
+        if not self.termination_distance > 0:
+            raise UserError(f"inbetween task: termination_distance must be > 0, got {self.termination_distance}")
+
+
+class InbetweenTask:
+    """Episode state per environment: ``clip``, ``start`` (the window's first frame), ``frame`` (the
+    reference frame the simulation is at), ``steps``, ``limit`` (steps to the last keyframe),
+    ``keyframes`` ``(N, K)`` (clip frames, for renderers too) and ``target`` (index of the next
+    keyframe to reach)."""
+
+    reward_key = "r_task"
+
+    def __init__(self, cfg: InbetweenTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
+        if abs(lib.fps - env.control_hz) > 1e-6:
+            raise UserError(f"the reference library is at {lib.fps:g} Hz but the control rate is {env.control_hz:g} Hz")
+        self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
+        N = env.num_envs
+        self.window = max(2, int(round(cfg.window_seconds * env.control_hz)))
+        self.min_gap = int(round(cfg.min_keyframe_gap_seconds * env.control_hz))
+        for k in (cfg.num_keyframes, cfg.eval_keyframes):
+            check_keyframe_count(k, self.window, self.min_gap)
+        self._key_dim = 2 * len(env.hum.skeleton.joints) * KEYFRAME_FEATURES
+        self.goal_dim = self._key_dim + (cfg.time_encoding_dim if cfg.time_encoding == "concat" else 0)
+        self.clip, self.start, self.frame = (np.zeros(N, dtype=np.int64) for _ in range(3))
+        self.steps, self.limit, self.target = np.zeros(N, dtype=np.int64), np.ones(N, dtype=np.int64), \
+            np.ones(N, dtype=np.int64)
+        self.set_keyframe_count(cfg.num_keyframes)
+        self._goal = np.zeros((N, self.goal_dim))
+        self.clip_p: np.ndarray | None = None  # start-clip probabilities (None: by usable length)
+
+    def set_keyframe_count(self, count: int) -> None:
+        """Keyframes per window from now on (e.g. ``cfg.eval_keyframes``); every environment must be
+        reset afterwards. The goal does not depend on it."""
+        check_keyframe_count(count, self.window, self.min_gap)
+        self.num_keyframes = int(count)
+        self.keyframes = np.tile(np.arange(self.num_keyframes, dtype=np.int64), (self.env.num_envs, 1))
+
+    def reset(self, ids: np.ndarray, clips=None, frames=None, keyframes=None) -> None:
+        """Random clips (by ``clip_p``), window starts and keyframes from the task's generator, unless
+        ``clips``/``frames`` (names or indices; window start, 0 by default) or ``keyframes`` (offsets
+        within the window, ``(len(ids), num_keyframes)``, starting at 0) are given."""
+        L, n, T, K = self.lib, len(ids), self.window, self.num_keyframes
+        if clips is None:
+            c, f = sample_starts(L, n, self.rng, T - 1, self.clip_p)
+        else:
+            c, f = given_starts(L, clips, frames, n)
+        if keyframes is None:
+            off = sample_keyframes(self.rng, n, K, T, self.min_gap)
+        else:
+            off = np.asarray(keyframes, dtype=np.int64)
+            off = np.broadcast_to(off, (n,) + off.shape[-1:]).copy() if off.ndim == 1 else off
+            if off.shape != (n, K):
+                raise UserError(f"inbetween task: keyframes must have shape ({n}, {K}), got {off.shape}")
+            check_keyframes(off, T)
+        bad = (f < 0) | (f + off[:, -1] > L.lengths[c] - 1)
+        if bad.any():
+            raise UserError(f"inbetween task: windows from frames {f[bad].tolist()} run past their clips' ends "
+                            f"(keyframes to offset {off[bad, -1].tolist()}, clip lengths {L.lengths[c[bad]].tolist()})")
+        self.env.set_state(ids, *reference_state(L, c, f))
+        self.clip[ids], self.start[ids], self.frame[ids], self.steps[ids] = c, f, f, 0
+        self.keyframes[ids] = f[:, None] + off
+        self.limit[ids] = off[:, -1]
+        self._refresh_goal(ids)
+
+    def _refresh_goal(self, ids) -> None:
+        c = self.cfg
+        t = self.frame[ids] - self.start[ids]
+        keys = self.keyframes[ids]
+        nxt = next_keyframe(keys - self.start[ids, None], t)
+        self.target[ids] = nxt
+        pair = np.stack([nxt, np.minimum(nxt + 1, self.num_keyframes - 1)] if c.goal_keyframes == "next"
+                        else [nxt - 1, nxt], 1)
+        g = keyframe_goal(self.env.bodies.take(ids), reference_bodies(self.lib, self.clip[ids, None],
+                                                                      np.take_along_axis(keys, pair, 1)))
+        if c.time_encoding != "none":
+            tta = np.maximum(keys[np.arange(len(nxt)), nxt] - self.frame[ids], 0)
+            dim = self._key_dim if c.time_encoding == "add" else c.time_encoding_dim
+            enc = time_encoding(tta, dim, max(self.window - 4, 0))
+            g = g + enc if c.time_encoding == "add" else np.concatenate([g, enc], 1)
+        self._goal[ids] = g
+
+    def goal(self) -> np.ndarray:
+        return self._goal.copy()
+
+    def keyframe_bodies(self) -> Bodies:
+        """Reference bodies ``(N, K, J, .)`` of every environment's keyframes."""
+        return reference_bodies(self.lib, self.clip[:, None], self.keyframes)
+
+    def markers(self) -> np.ndarray:
+        """``(N, J, 3)`` world body positions of the next keyframe to reach, for videos."""
+        g = self.lib.frame_index(self.clip, self.keyframes[np.arange(self.env.num_envs), self.target])
+        return self.lib.body_pos[g]
+
+    def next_reference(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(qpos, qvel)`` of the reference frame the coming step should reach (the action base)."""
+        g = self.lib.frame_index(self.clip, self.frame + 1)
+        return self.lib.qpos[g], self.lib.qvel[g]
+
+    def update(self, diverged: np.ndarray, invalid: np.ndarray):
+        env, L, c = self.env, self.lib, self.cfg
+        self.frame += 1
+        self.steps += 1
+        N = env.num_envs
+        g = L.frame_index(self.clip, self.frame)
+        sim, ref = env.bodies, reference_bodies(L, self.clip, self.frame)
+        err = inbetween_errors(sim.pos, ref.pos, env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:], L.qvel[g, 6:],
+                               env.end_effectors)
+        bad = diverged | invalid
+        rewards = {k: np.where(bad, 0.0, v) for k, v in inbetween_reward(err, c.reward).items()}
+        dist = body_distances(sim, ref)
+        fell = tracking_failure(dist, c.termination, c.termination_distance) if c.early_termination \
+            else np.zeros(N, dtype=bool)
+        terminated = fell | bad
+        truncated = time_limit(self.steps, self.limit) & ~terminated
+        hit = self.keyframes[:, 1:] == self.frame[:, None]  # the start keyframe is no target
+        info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "at_keyframe": hit.any(1),
+                "keyframe_index": np.where(hit.any(1), hit.argmax(1) + 1, -1),
+                "max_body_error": dist.max(-1), "mean_body_error": dist.mean(-1), "diverged": diverged,
+                "invalid_action": invalid, "episode_steps": self.steps.copy()}
+        self._refresh_goal(slice(None))
+        return rewards, terminated, truncated, info

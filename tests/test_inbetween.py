@@ -1,0 +1,242 @@
+"""The motion in-betweening task (appendix C.1): keyframe sampling, the time encoding, the Eq. 12
+goal, the Eq. 14 reward, termination, the task in a TaskEnv and its evaluation (Table 2 metrics)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from motok.control.mdp.keyframes import (InbetweenRewardConfig, inbetween_errors, inbetween_reward, keyframe_goal,
+                                         next_keyframe, sample_keyframes, time_encoding)
+from motok.control.task_eval import EpisodeErrors, evaluate_inbetween
+from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
+from motok.errors import UserError
+from motok.sim.obs import Bodies
+from task_helpers import place, rz, task_mdp
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+# 18-frame windows: PD tracking of the reference alone stays up that long (it drifts over 30 frames)
+SHORT = dict(window_seconds=0.6, num_keyframes=3, eval_keyframes=4, min_keyframe_gap_seconds=0.1)
+
+
+def _mdp(hum, lib, n, seed=0, base="reference", **task) -> TaskEnv:
+    return task_mdp(InbetweenTask, InbetweenTaskConfig(**{**SHORT, **task}), hum, lib, n, seed, base)
+
+
+_rz, _place = rz, place
+
+
+# ----------------------------------------------------------------------------- terms
+
+def test_keyframe_sampling_count_order_window_and_spacing():
+    rng = np.random.default_rng(0)
+    k = sample_keyframes(rng, 4000, 5, 120, 15)
+    assert k.shape == (4000, 5) and k.dtype == np.int64
+    assert (k[:, 0] == 0).all() and (k[:, -1] == 119).all()  # the start and the window's last frame
+    gaps = np.diff(k, axis=1)
+    assert gaps.min() == 15 and gaps.max() > 60  # never closer than the minimum, and spread out
+    # three keyframes: the middle one is uniform over the frames that keep both gaps >= 15
+    mid = sample_keyframes(rng, 20000, 3, 120, 15)[:, 1]
+    assert mid.min() == 15 and mid.max() == 104 and abs(mid.mean() - 59.5) < 1.0
+    assert np.array_equal(sample_keyframes(rng, 2, 9, 121, 15), np.tile(np.arange(9) * 15, (2, 1)))  # no slack
+    for count in (1, 10):
+        with pytest.raises(UserError, match="num_keyframes"):
+            sample_keyframes(rng, 1, count, 121, 15)
+
+
+def test_time_encoding_hand_values():
+    e = time_encoding(np.array([0, 1, 7, 96, 500]), 4, cap=96)
+    assert np.allclose(e[0], [0, 1, 0, 1])
+    assert np.allclose(e[1], [math.sin(1), math.cos(1), math.sin(0.01), math.cos(0.01)])  # w_1 = 10000^(-2/4)
+    assert np.allclose(e[2], [math.sin(7), math.cos(7), math.sin(0.07), math.cos(0.07)])
+    assert np.array_equal(e[4], e[3])  # constant from the cap on
+    odd = time_encoding(np.array([2]), 3, cap=50)[0]
+    assert np.allclose(odd, [math.sin(2), math.cos(2), math.sin(2 * 10000 ** (-2 / 3))])
+
+
+def test_next_keyframe_moves_on_at_arrival():
+    keys = np.array([[0, 10, 25, 40]] * 6)
+    t = np.array([0, 9, 10, 24, 25, 40])
+    assert next_keyframe(keys, t).tolist() == [1, 1, 2, 2, 3, 3]  # the last one stays once reached
+
+
+def test_keyframe_goal_in_the_heading_frame():
+    """A character facing +Y (yaw 90 deg): a keyframe 1 m along world +X is 1 m to its right
+    (heading frame -Y); a keyframe turned 30 deg more about the vertical reads Rz(30)'s columns."""
+    root, arm = np.array([1.0, 2.0, 0.9]), np.array([0.0, 0.3, 0.4])
+    pos = np.stack([root, root + arm])[None]
+    rot = np.broadcast_to(_rz(90), (1, 2, 3, 3)).copy()
+    zero = np.zeros((1, 2, 3))
+    sim = Bodies(pos, zero, zero, rot=rot)
+    kpos = np.stack([pos[0] + [1.0, 0, 0], pos[0]])[None]  # (1, K=2, J=2, 3)
+    krot = np.stack([rot[0], np.broadcast_to(_rz(120), (2, 3, 3))])[None]
+    keys = Bodies(kpos, np.zeros((1, 2, 2, 3)), np.zeros((1, 2, 2, 3)), rot=krot)
+    g = keyframe_goal(sim, keys).reshape(1, 2, 2, 9)
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    assert np.allclose(g[0, 0, :, :3], [0, -1, 0]) and np.allclose(g[0, 0, :, 3:], [1, 0, 0, 0, 1, 0])
+    assert np.allclose(g[0, 1, :, :3], 0) and np.allclose(g[0, 1, :, 3:], [c, s, 0, -s, c, 0])
+
+
+def test_inbetween_reward_hand_values():
+    pos = np.zeros((1, 3, 3))
+    ref = pos + [0.1, 0.0, 0.0]  # every body 0.1 m off: root and (global) end effectors
+    err = inbetween_errors(pos, ref, np.zeros((1, 2)), np.array([[0.1, 0.3]]), np.zeros((1, 2)),
+                           np.array([[1.0, 3.0]]), [1, 2])
+    assert err["root"][0] == pytest.approx(0.01) and err["ee"][0] == pytest.approx(0.01)
+    assert err["q"][0] == pytest.approx(0.05) and err["qd"][0] == pytest.approx(5.0)  # means over hinges
+    r = inbetween_reward(err, InbetweenRewardConfig())
+    want = 0.65 * math.exp(-0.1) + 0.1 * math.exp(-0.5) + 0.15 * math.exp(-0.4) + 0.1 * math.exp(-0.1)
+    assert r["r_task"][0] == pytest.approx(want)
+    same = inbetween_errors(pos, pos, np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2)), [1])
+    assert inbetween_reward(same, InbetweenRewardConfig())["r_task"][0] == pytest.approx(1.0)
+    with pytest.raises(UserError, match="w_q"):
+        InbetweenRewardConfig(w_q=-1)
+
+
+# ----------------------------------------------------------------------------- the task
+
+def test_reward_is_maximal_on_the_reference_and_lower_off_it(hum, lib):
+    mdp = _mdp(hum, lib, 2)
+    mdp.reset(clips=[0, 3], frames=[10, 20], keyframes=[0, 8, 17])
+    task, g = mdp.task, lib.starts[[0, 3]] + np.array([10, 20])
+    _place(mdp, [0, 1], g + 1)  # exactly the reference frame the step reaches
+    r, term, trunc, info = task.update(np.zeros(2, bool), np.zeros(2, bool))
+    assert np.allclose(r["r_task"], 1.0, atol=1e-9) and not term.any() and not trunc.any()
+    assert info["max_body_error"].max() < 1e-9
+    _place(mdp, [0, 1], g + 2, shift=(0.1, 0.0, 0.0))  # the whole body 0.1 m off, same pose
+    r, term, _, _ = task.update(np.zeros(2, bool), np.zeros(2, bool))
+    want = 0.65 + 0.1 + 0.15 * math.exp(-40 * 0.01) + 0.1 * math.exp(-10 * 0.01)
+    assert np.allclose(r["r_task"], want, atol=1e-6) and not term.any()
+    _place(mdp, [0, 1], g + 3)
+    r, term, _, info = task.update(np.array([False, True]), np.zeros(2, bool))  # env 1 diverged
+    assert r["r_task"][1] == 0.0 and r["r_task"][0] == pytest.approx(1.0) and term.tolist() == [False, True]
+
+
+def test_termination_at_the_body_distance(hum, lib):
+    """The whole body 0.45 / 0.55 m off ends only the second episode; a flung arm (one body far,
+    the mean small) ends it on the "any" test and not on the "mean" one (the default)."""
+    mdp, strict = _mdp(hum, lib, 3), _mdp(hum, lib, 3, termination="any")
+    g = lib.starts[1] + 6
+    arm = hum.qpos_adr[list(hum.skeleton.joints).index("UpperArm_R")]
+    for m in (mdp, strict):
+        m.reset(clips=[1, 1, 1], frames=[5, 5, 5])
+        for i, d in enumerate((0.45, 0.55)):
+            _place(m, [i], [g], shift=(0.0, d, 0.0))
+        q, v = lib.qpos[[g]].copy(), lib.qvel[[g]].copy()
+        q[0, arm[0]] += 3.0  # a swing hinge of the shoulder (the middle one is the twist)
+        m.env.set_state(np.array([2]), q, v)
+    _, term, trunc, info = mdp.task.update(np.zeros(3, bool), np.zeros(3, bool))
+    assert np.allclose(info["mean_body_error"][:2], [0.45, 0.55]) and not trunc.any()
+    assert info["max_body_error"][2] > 0.5 > info["mean_body_error"][2]
+    assert term.tolist() == [False, True, False]
+    assert strict.task.update(np.zeros(3, bool), np.zeros(3, bool))[1].tolist() == [False, True, True]
+    off = _mdp(hum, lib, 2, early_termination=False)
+    off.reset(clips=[1, 1], frames=[5, 5])
+    _place(off, [0, 1], [g, g], shift=(0.0, 2.0, 0.0))
+    assert not off.task.update(np.zeros(2, bool), np.zeros(2, bool))[1].any()
+
+
+def test_task_env_tracks_the_reference_through_the_keyframes(hum, lib):
+    """Zero actions on the reference base (PD on the reference) pass every keyframe: high reward,
+    no termination, the keyframes flagged at their frames, truncation at the last one, and the goal
+    is the Eq. 12 differences to the next two keyframes plus the encoded frames left."""
+    mdp = _mdp(hum, lib, 2)
+    task = mdp.task
+    obs, goal = mdp.reset(clips=[0, 5], frames=[0, 40], keyframes=[0, 8, 17])
+    assert goal.shape == (2, task.goal_dim) == (2, 2 * 21 * 9) and obs.shape == (2, mdp.obs_dim)
+    keys = task.keyframe_bodies()
+    expect = keyframe_goal(mdp.env.bodies, keys.take((slice(None), slice(1, 3))))
+    assert np.allclose(goal - expect, time_encoding(np.array([8, 8]), task.goal_dim, task.window - 4))
+    assert task.markers().shape == (2, 21, 3) and np.allclose(task.markers(), keys.pos[:, 1])
+    zero = np.zeros((2, mdp.action_dim))
+    for step in range(1, 18):
+        obs, goal, r, term, trunc, info = mdp.step(zero)
+        assert np.isfinite(obs).all() and np.isfinite(goal).all()
+        assert (r["r_task"] > 0.6).all() and (r["r_task"] <= 1.0 + 1e-9).all() and not term.any()
+        assert info["at_keyframe"].all() == (step in (8, 17)) and trunc.all() == (step == 17)
+        assert (task.target == (1 if step < 8 else 2)).all()
+        if step == 8:  # the goal now shows keyframe 2 twice (the last stretch), 9 frames ahead
+            k2 = keys.take((slice(None), slice(2, 3)))
+            pair = Bodies(*(np.concatenate([a, a], 1) for a in (k2.pos, k2.vel, k2.angvel)),
+                          quat=np.concatenate([k2.quat, k2.quat], 1))
+            enc = time_encoding(np.array([9, 9]), task.goal_dim, task.window - 4)
+            assert np.allclose(goal, keyframe_goal(mdp.env.bodies, pair) + enc)
+    assert info["keyframe_index"].tolist() == [2, 2]
+    # the fork's pair (last keyframe passed, next one), concatenated encoding, current-pose base
+    prev = _mdp(hum, lib, 2, base="current", goal_keyframes="previous", time_encoding="concat", time_encoding_dim=6)
+    _, goal = prev.reset(clips=[0, 5], frames=[0, 40], keyframes=[0, 8, 17])
+    assert goal.shape == (2, 2 * 21 * 9 + 6) and prev.task.goal_dim == goal.shape[1]
+    pair = prev.task.keyframe_bodies().take((slice(None), slice(0, 2)))
+    assert np.allclose(goal[:, :-6], keyframe_goal(prev.env.bodies, pair))
+    assert np.allclose(goal[:, -6:], time_encoding(np.array([8, 8]), 6, 14))
+    for _ in range(3):
+        _, goal, r, term, _, _ = prev.step(np.zeros((2, prev.action_dim)))
+        assert np.isfinite(goal).all() and np.isfinite(r["r_task"]).all()
+
+
+def test_random_windows_fit_their_clips_and_bad_inputs_are_named(hum, lib):
+    mdp = _mdp(hum, lib, 64, seed=3, window_seconds=4.0, num_keyframes=4, eval_keyframes=5,
+               min_keyframe_gap_seconds=0.5)
+    mdp.reset()
+    t = mdp.task
+    assert (t.keyframes[:, 0] == t.start).all() and (t.keyframes[:, -1] == t.start + 119).all()
+    assert (t.keyframes[:, -1] <= lib.lengths[t.clip] - 1).all() and (np.diff(t.keyframes, axis=1) >= 15).all()
+    assert len(np.unique(t.keyframes[:, 1] - t.start)) > 10  # the keyframes differ between windows
+    with pytest.raises(UserError, match="run past"):
+        mdp.reset([0], clips=[0], frames=[lib.lengths[0] - 50])
+    with pytest.raises(UserError, match="keyframes must be"):
+        mdp.reset([0], clips=[0], frames=[0], keyframes=[0, 30, 20, 60])
+    with pytest.raises(UserError, match="num_keyframes"):
+        _mdp(hum, lib, 1, num_keyframes=8)  # 8 keyframes 3 frames apart need 22 of the 18 frames
+    with pytest.raises(UserError, match="goal_keyframes"):
+        InbetweenTaskConfig(goal_keyframes="all")
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+def test_episode_errors_hand_values():
+    """The accumulator behind the evaluations: zero on the reference itself; a constant 10 mm
+    offset is only global error; a drift of 1 mm per frame is 1 mm/frame of velocity error and no
+    acceleration error; keyframe columns count only the flagged frames."""
+    rng = np.random.default_rng(0)
+    T, N, J = 8, 3, 4
+    ref = rng.normal(0, 0.3, (T, N, J, 3))
+    drift = np.arange(T)[:, None, None, None] * np.array([0.001, 0, 0])
+    sims = {"same": ref, "offset": ref + [0.01, 0, 0], "drift": ref + drift}
+    key = np.zeros((T, N), bool)
+    key[[3, 6]] = True
+    out = {}
+    for name, sim in sims.items():
+        acc = EpisodeErrors(N)
+        live = np.ones(N, bool)
+        for t in range(T):
+            acc.record(sim[t], ref[t], live, key[t])
+        out[name] = dict(zip(acc.names, acc.means(np.arange(N)).T))
+    assert all(np.allclose(v, 0) for v in out["same"].values())
+    assert np.allclose(out["offset"]["g_mpjpe_mm"], 10) and np.allclose(out["offset"]["mpjpe_mm"], 0)
+    assert np.allclose(out["offset"]["vel_err_mm"], 0) and np.allclose(out["offset"]["acc_err_mm"], 0)
+    assert np.allclose(out["drift"]["vel_err_mm"], 1) and np.allclose(out["drift"]["acc_err_mm"], 0, atol=1e-9)
+    assert np.allclose(out["drift"]["g_mpjpe_mm"], np.arange(T).mean())
+    assert np.allclose(out["drift"]["keyframe_g_mpjpe_mm"], (3 + 6) / 2)
+
+
+def test_evaluate_inbetween_on_pd_tracking(hum, lib):
+    mdp = _mdp(hum, lib, 2, seed=1)
+    res = evaluate_inbetween(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), 3)
+    assert res["episodes"] == 3 and res["keyframes_per_window"] == 4 and len(res["per_episode"]["success"]) == 3
+    assert res["success_rate"] == 1.0 and res["seconds_mean"] == pytest.approx(17 / 30)
+    for m in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"):
+        for pre in ("", "keyframe_"):
+            assert np.isfinite(res[f"{pre}{m}_mean"]) and res[f"{pre}{m}_std"] >= 0
+    assert 0 < res["mpjpe_mm_mean"] < 150 and res["g_mpjpe_mm_mean"] >= res["mpjpe_mm_mean"] * 0.5
+    assert mdp.task.num_keyframes == 3  # restored after evaluating with eval_keyframes
+    with pytest.raises(UserError, match="episodes"):
+        evaluate_inbetween(mdp, lambda o, g: np.zeros((2, mdp.action_dim)), 0)
+
+
+
+

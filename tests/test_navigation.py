@@ -1,0 +1,250 @@
+"""The navigation task (hybrid-latent paper, appendix C.3): its pure terms against hand-computed
+values (Eq. 15 goal, Eq. 16 reward, fall test, target draws), the task on the real humanoid
+(retargeting, truncation, rewards of a standing character, a fall) and the evaluation loop."""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+
+import numpy as np
+import pytest
+
+from motok.control.mdp.actions import ActionConfig, pd_targets
+from motok.control.mdp.navigation import head_fell, heading_frame_target, navigation_reward, sample_targets
+from motok.control.mdp.resets import reference_state
+from motok.control.nav_eval import episode_quota, evaluate_navigation
+from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig
+from motok.errors import UserError
+from motok.rotations import quat_to_matrix
+from motok.sim.env import HumanoidEnv, SimConfig
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def yaw_quat(deg: float, pitch_deg: float = 0.0) -> np.ndarray:
+    """(w, x, y, z) of a yaw about world Z after a pitch about the body Y axis, multiplied by hand:
+    (c1, 0, 0, s1) (c2, 0, s2, 0) = (c1 c2, -s1 s2, c1 s2, s1 c2)."""
+    a, b = math.radians(deg) / 2, math.radians(pitch_deg) / 2
+    return np.array([math.cos(a) * math.cos(b), -math.sin(a) * math.sin(b), math.cos(a) * math.sin(b),
+                     math.sin(a) * math.cos(b)])
+
+
+# ----------------------------------------------------------------------------- pure terms
+def test_goal_is_the_target_in_the_heading_frame():
+    root = np.array([[1.0, 2.0, 0.9]] * 6)
+    c30, s30 = math.cos(math.radians(30)), math.sin(math.radians(30))
+    quat = np.stack([yaw_quat(0), yaw_quat(90), yaw_quat(180), yaw_quat(90, pitch_deg=30), yaw_quat(30), yaw_quat(30)])
+    target = np.array([[4.0, 2.0], [4.0, 2.0], [4.0, 2.0], [4.0, 2.0],
+                       [1 + 4 * c30, 2 + 4 * s30],  # 4 m straight ahead of a root yawed by 30 degrees
+                       [1 - 2 * s30, 2 + 2 * c30]])  # 2 m on its left
+    g = heading_frame_target(root, quat, target)
+    # facing +X: 3 m ahead; facing +Y (yaw 90): world +X is on the right, (0, -3); facing -X: behind.
+    # A pitched (leaning) root has the same heading as the upright one: yaw only.
+    want = [[3, 0], [0, -3], [-3, 0], [0, -3], [4, 0], [0, 2]]
+    np.testing.assert_allclose(g, want, atol=1e-12)
+    np.testing.assert_allclose(heading_frame_target(root, quat_to_matrix(quat), target), want, atol=1e-12)
+
+
+def test_reward_against_hand_values():
+    cfg = NavigationTaskConfig()
+    e = math.exp
+    c45 = math.cos(math.pi / 4)
+    cases = [  # (root xy, yaw deg, planar velocity, target, r_vel)
+        ((0, 0), 0, (0, 0), (0.3, 0), 1.0),  # at the goal, standing: the velocity term is full
+        ((0, 0), 0, (0, 0), (0, 0), 1.0),  # exactly on it (no direction): still full
+        ((0, 0), 0, (0, 0), (5, 0), e(-1)),  # far, standing still
+        ((0, 0), 0, (1.5, 0), (2, 0), 1.0),  # walking toward it faster than u
+        ((0, 0), 0, (0.5, 0), (2, 0), e(-0.25)),  # toward it at half the speed
+        ((0, 0), 180, (-1.5, 0), (2, 0), e(-2.5 ** 2)),  # walking away from it: v = -1.5
+        ((0, 0), 180, (1.5, 0), (2, 0), e(-1)),  # backwards toward it: forward part clamped at 0
+        ((0, 0), 0, (0, 1.0), (0, 2), e(-1)),  # side-stepping toward it: no forward component
+        ((0, 0), 45, (c45, c45), (2, 0), e(-(1 - c45) ** 2)),  # 1 m/s at 45 degrees off the target
+        ((0, 0), 0, (0, 0), (0.5, 0), e(-1)),  # the radius is strict: 0.5 m is not "within"
+        ((3, -1), 90, (0, 2.0), (3, 2), 1.0),  # away from the origin, facing +Y toward a target at +Y
+    ]
+    root = np.array([[x, y, 0.9] for (x, y), *_ in cases])
+    quat = np.stack([yaw_quat(c[1]) for c in cases])
+    vel = np.array([[vx, vy, 3.0] for _, _, (vx, vy), *_ in cases])  # a vertical velocity changes nothing
+    target = np.array([c[3] for c in cases], dtype=float)
+    r = navigation_reward(root, vel, quat, target, cfg)
+    d = np.hypot(*(target - root[:, :2]).T)
+    np.testing.assert_allclose(r["r_vel"], [c[4] for c in cases], rtol=1e-12)
+    np.testing.assert_allclose(r["r_pos"], np.exp(-0.5 * d ** 2), rtol=1e-12)
+    np.testing.assert_allclose(r["r_task"], 0.7 * np.exp(-0.5 * d ** 2) + 0.3 * np.array([c[4] for c in cases]),
+                               rtol=1e-12)
+    assert r["r_task"][0] == pytest.approx(0.7 * e(-0.045) + 0.3)
+    assert r["r_task"][2] == pytest.approx(0.7 * e(-12.5) + 0.3 * e(-1))
+    assert r["r_task"][3] > r["r_task"][4] > r["r_task"][6] > r["r_task"][5]  # toward > slower > still-ish > away
+
+
+def test_head_fall_skips_the_first_step():
+    h = np.array([0.4, 0.4, 0.4, 0.6, 0.5])
+    steps = np.array([1, 2, 50, 50, 50])
+    assert head_fell(h, steps, 0.5).tolist() == [False, True, True, False, False]
+
+
+def test_targets_are_uniform_in_direction_and_distance():
+    rng = np.random.default_rng(0)
+    root = np.tile([3.0, -2.0, 0.9], (40000, 1))
+    t = sample_targets(root, rng, 5.0, 10.0)
+    disp = t - root[:, :2]
+    d = np.hypot(*disp.T)
+    assert d.min() >= 5.0 and d.max() <= 10.0
+    assert d.mean() == pytest.approx(7.5, abs=0.05)
+    assert (d < 7.5).mean() == pytest.approx(0.5, abs=0.01)  # uniform in distance (by area: 0.417)
+    unit = disp / d[:, None]
+    assert np.hypot(*unit.mean(0)) < 0.02  # no preferred direction
+    counts = np.bincount((np.arctan2(unit[:, 1], unit[:, 0]) // (np.pi / 4)).astype(int) + 4, minlength=8)
+    assert np.abs(counts / len(d) - 1 / 8).max() < 0.01
+    same = sample_targets(root[:3], np.random.default_rng(1), 2.0, 2.0)
+    np.testing.assert_allclose(np.hypot(*(same - root[:3, :2]).T), 2.0)
+    with pytest.raises(UserError, match="min_dist"):
+        sample_targets(root[:3], rng, 10.0, 5.0)
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(UserError, match="min_distance"):
+        NavigationTaskConfig(min_distance=11.0)
+    with pytest.raises(UserError, match="retarget_seconds"):
+        NavigationTaskConfig(retarget_seconds=0)
+    with pytest.raises(UserError, match="w_vel"):
+        NavigationTaskConfig(w_vel=-1)
+
+
+# ----------------------------------------------------------------------------- on the humanoid
+SHORT = dict(episode_seconds=1.0, retarget_seconds=0.5)  # 30 steps, a new target after 15
+
+
+def _mdp(hum, lib, n, seed=0, nan_actions="raise", **cfg) -> TaskEnv:
+    env = HumanoidEnv(hum, SimConfig(num_envs=n, nthread=1, nan_actions=nan_actions))
+    task = NavigationTask(NavigationTaskConfig(**cfg), env, lib, np.random.default_rng(seed))
+    return TaskEnv(env, task, partial(pd_targets, ActionConfig("current")))
+
+
+def _hold(mdp):
+    """Zero residuals on the current pose: PD targets hold the current hinge angles."""
+    return np.zeros((mdp.num_envs, mdp.action_dim))
+
+
+def _forward(q):
+    """Unit planar forward axis of (w, x, y, z) quaternions, from the rotation matrix's first column."""
+    w, x, y, z = q.T
+    f = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z)], -1)
+    return f / np.linalg.norm(f, axis=-1, keepdims=True)
+
+
+def test_head_body_by_name(hum, lib):
+    env = HumanoidEnv(hum, SimConfig(num_envs=1, nthread=1))
+    task = NavigationTask(NavigationTaskConfig(), env, lib, np.random.default_rng(0))
+    assert hum.skeleton.joints[task.head] == "Head"
+    assert NavigationTask(NavigationTaskConfig(head_body="Neck"), env, lib, np.random.default_rng(0)).head == \
+        hum.skeleton.joints.index("Neck")
+    with pytest.raises(UserError, match="head_body 'Skull' .*bodies: Hips"):
+        NavigationTask(NavigationTaskConfig(head_body="Skull"), env, lib, np.random.default_rng(0))
+
+
+def test_targets_change_every_retarget_period_and_episodes_truncate(hum, lib):
+    mdp = _mdp(hum, lib, 2, early_termination=False, **SHORT)
+    task, env = mdp.task, mdp.env
+    _, goal = mdp.reset(clips=[0, 1], frames=[3, 7])
+    np.testing.assert_allclose(env.qpos, reference_state(lib, np.array([0, 1]), np.array([3, 7]))[0])
+    root = env.qpos[:, :2].copy()
+    d0 = np.hypot(*(task.target - root).T)
+    assert ((d0 >= 5) & (d0 <= 10)).all() and (task.target_index == 0).all()
+    # Eq. 15 by hand: the displacement turned by minus the root's heading
+    f = _forward(env.qpos[:, 3:7])
+    disp = task.target - root
+    np.testing.assert_allclose(goal, np.stack([(disp * f).sum(1), f[:, 0] * disp[:, 1] - f[:, 1] * disp[:, 0]], 1),
+                               atol=1e-9)
+    first = task.target.copy()
+    for t in range(1, 31):
+        _, goal, r, term, trunc, info = mdp.step(_hold(mdp))
+        assert info["target_time"] == pytest.approx(np.full(2, (t - 1) % 15 + 1) / 30)
+        assert (info["target_index"] == (t - 1) // 15).all() and not term.any()
+        assert info["target_ends"].all() == (t % 15 == 0) and trunc.all() == (t == 30) and trunc.any() == (t == 30)
+        if t < 15:
+            np.testing.assert_array_equal(task.target, first)
+        if t == 15:  # a new target, 5-10 m from where the root is now, and the goal already shows it
+            assert (task.target_index == 1).all() and not np.isclose(task.target, first).any()
+            d = np.hypot(*(task.target - env.qpos[:, :2]).T)
+            assert ((d >= 5) & (d <= 10)).all()
+            np.testing.assert_allclose(goal, heading_frame_target(env.qpos[:, :3], env.qpos[:, 3:7], task.target))
+            np.testing.assert_allclose(info["distance"], np.hypot(*(first - env.qpos[:, :2]).T))  # the old one's
+    assert (task.target_index == 1).all()  # no third target at the truncation step
+    mdp.reset([1])
+    assert task.target_index.tolist() == [1, 0] and task.steps.tolist() == [30, 0]
+
+
+def test_standing_humanoid_rewards_and_a_dropped_one_terminates(hum, lib):
+    mdp = _mdp(hum, lib, 3)
+    task, env = mdp.task, mdp.env
+    mdp.reset(clips=[0, 0, 0], frames=[0, 0, 0])
+    q = env.qpos.copy()
+    env.set_state(np.arange(3), q, np.zeros_like(env.qvel))  # at rest
+    f = _forward(q[:, 3:7])
+    # env 0: 6 m ahead; env 1: 0.3 m ahead (at the goal); env 2: dropped on the floor at step 1 (grace)
+    task.set_targets([0, 1, 2], q[:, :2] + f * np.array([[6.0], [0.3], [6.0]]))
+    lying = q[2].copy()
+    lying[2], lying[3:7] = 0.25, yaw_quat(0, pitch_deg=90)  # pitched face-down, the head near the floor
+    env.set_state(np.array([2]), lying[None], np.zeros((1, env.qvel.shape[1])))
+    assert env.bodies.pos[2, task.head, 2] < 0.5 < env.bodies.pos[0, task.head, 2]
+    _, _, r, term, trunc, info = mdp.step(_hold(mdp))
+    assert not term.any() and not info["fell"].any()  # the first step is never a fall
+    v = env.qvel[:, :2]
+    fwd = _forward(env.qpos[:, 3:7])
+    toward = np.maximum((v * fwd).sum(1), 0) * ((task.target - env.qpos[:, :2]) * fwd).sum(1) / info["distance"]
+    d = info["distance"]
+    assert np.abs(np.hypot(*v.T)[:2]).max() < 0.1 and abs(d[1] - 0.3) < 0.02  # standing still
+    np.testing.assert_allclose(r["r_vel"][0], math.exp(-(1 - toward[0]) ** 2), rtol=1e-4)
+    assert r["r_vel"][1] == 1.0
+    np.testing.assert_allclose(r["r_task"][:2], 0.7 * np.exp(-0.5 * d[:2] ** 2) + 0.3 * r["r_vel"][:2], rtol=1e-12)
+    assert r["r_task"][0] == pytest.approx(0.7 * math.exp(-18) + 0.3 * math.exp(-1), abs=0.02)
+    assert r["r_task"][1] == pytest.approx(0.7 * math.exp(-0.5 * 0.09) + 0.3, abs=0.01)
+    assert info["reached"].tolist() == [False, True, False] and info["time_to_reach"][1] == pytest.approx(1 / 30)
+    _, _, r, term, trunc, info = mdp.step(_hold(mdp))
+    assert term.tolist() == [False, False, True] and info["fell"].tolist() == [False, False, True]
+    assert not trunc.any() and r["r_task"][2] > 0  # a fall is not a diverged simulation: rewarded as usual
+    # a fall in mid-episode, dropped after the grace step
+    env.set_state(np.array([0]), lying[None], np.zeros((1, env.qvel.shape[1])))
+    _, _, _, term, _, info = mdp.step(_hold(mdp))
+    assert term[0] and info["fell"][0]
+
+
+def test_invalid_actions_get_no_reward_and_terminate(hum, lib):
+    mdp = _mdp(hum, lib, 2, nan_actions="terminate")
+    mdp.reset(clips=[0, 0], frames=[5, 5])
+    a = _hold(mdp)
+    a[1, 0] = np.nan
+    _, goal, r, term, _, info = mdp.step(a)
+    assert term.tolist() == [False, True] and info["invalid_action"][1]
+    assert r["r_task"][1] == 0.0 and r["r_task"][0] > 0 and np.isfinite(goal).all()
+
+
+def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
+    assert episode_quota(7, 3).tolist() == [3, 2, 2] and episode_quota(2, 3).tolist() == [1, 1, 0]
+
+    def run(episodes, n=2, **cfg):
+        mdp = _mdp(hum, lib, n, **cfg)
+        return evaluate_navigation(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), episodes)
+
+    # Targets 5-10 m away are never reached by a character holding its pose.
+    far = run(3, early_termination=False, **SHORT)
+    assert far["episodes"] == 3 and far["targets"] == 6 and far["reached_share"] == 0.0
+    assert math.isnan(far["time_to_reach_mean_s"]) and len(far["goal_speeds"]) == 0 and far["falls_per_episode"] == 0
+    # Targets within the radius are reached on the first step (a walking start state carries the
+    # character on, but a new target is drawn around it before it leaves the radius).
+    near = run(2, min_distance=0.0, max_distance=0.05, early_termination=False, **SHORT)
+    assert near["targets"] == 4 and near["reached_share"] == 1.0
+    assert near["time_to_reach_mean_s"] == pytest.approx(1 / 30)
+    assert near["time_to_reach_median_s"] == pytest.approx(1 / 30)
+    speeds = near["goal_speeds"]
+    assert 4 <= len(speeds) <= 2 * 30 and (speeds >= 0).all()
+    assert near["goal_speed_mean"] == pytest.approx(speeds.mean()) and near["goal_speed_median"] == np.median(speeds)
+    assert near["mean_reward"] > far["mean_reward"]
+    # A head "below" 3 m is a fall on every second step: one fall per episode, its target missed.
+    fall = run(3, fall_height=3.0, **SHORT)
+    assert fall["falls_per_episode"] == 1.0 and fall["targets"] == 3 and fall["reached_share"] == 0.0
+    with pytest.raises(UserError, match="episodes"):
+        run(0)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from motok.control.mdp.head import HeadRewardConfig, head_errors, head_goal, head_reward, rotation_angle
-from motok.control.mdp.keyframes import reference_bodies
+from motok.control.mdp.resets import reference_bodies
 from motok.control.task_eval import evaluate_hmd
 from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.hmd import HMDTask, HMDTaskConfig

@@ -41,23 +41,8 @@ from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.rewards import check_non_negative
 from motok.errors import UserError
 from motok.sim.obs import Bodies
-from motok.sim.reference import ReferenceLibrary
 
 KEYFRAME_FEATURES = 9  # per body: position difference (3) + rotation difference (6D)
-
-
-def reference_bodies(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndarray) -> Bodies:
-    """Reference body states at ``frames`` of ``clips`` (broadcast together; clamped to each clip's
-    last frame by ``frame_index``)."""
-    g = lib.frame_index(clips, frames)
-    return Bodies(lib.body_pos[g], lib.body_vel[g], lib.body_angvel[g], quat=lib.body_quat[g])
-
-
-def given_starts(lib: ReferenceLibrary, clips, frames, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Clip indices and start frames ``(n,)`` from given ``clips`` (names or indices) and ``frames``
-    (0 by default), each broadcast to ``n`` environments."""
-    c = np.array([lib.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))], dtype=np.int64)
-    return c, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()
 
 
 def check_keyframe_count(count: int, window: int, min_gap: int, where: str = "inbetween task") -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from motok.errors import UserError
+from motok.sim.obs import Bodies
 from motok.sim.reference import ReferenceLibrary
 
 RESET_CLEARANCE = 0.002  # m: a reference pose whose geometry dips below the floor is lifted to this height
@@ -41,3 +42,17 @@ def sample_starts(lib: ReferenceLibrary, n: int, rng: np.random.Generator, ahead
     clips = rng.choice(len(lib), size=n, p=clip_p)
     frames = np.floor(rng.random(n) * usable[clips]).astype(np.int64)
     return clips, frames
+
+
+def reference_bodies(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndarray) -> Bodies:
+    """Reference body states at ``frames`` of ``clips`` (broadcast together; clamped to each clip's
+    last frame by ``frame_index``)."""
+    g = lib.frame_index(clips, frames)
+    return Bodies(lib.body_pos[g], lib.body_vel[g], lib.body_angvel[g], quat=lib.body_quat[g])
+
+
+def given_starts(lib: ReferenceLibrary, clips, frames, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Clip indices and start frames ``(n,)`` from given ``clips`` (names or indices) and ``frames``
+    (0 by default), each broadcast to ``n`` environments."""
+    c = np.array([lib.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))], dtype=np.int64)
+    return c, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()

@@ -31,3 +31,14 @@ def fell(body_height: np.ndarray, min_height: float) -> np.ndarray:
 def time_limit(steps: np.ndarray, limit: np.ndarray) -> np.ndarray:
     """Episodes that have run their ``limit`` control steps (a truncation: bootstrapped)."""
     return steps >= limit
+
+
+def end_of_step(rewards: dict, failed: np.ndarray, diverged: np.ndarray, invalid: np.ndarray, steps: np.ndarray,
+                limit) -> tuple[dict, np.ndarray, np.ndarray]:
+    """What every task does after a step: its reward terms zeroed after a diverged simulation or an
+    invalid action; terminated = the task's own failure or either of those; truncated = the time
+    limit in an episode that did not terminate. Returns ``(rewards, terminated, truncated)``."""
+    bad = diverged | invalid
+    terminated = failed | bad
+    return ({k: np.where(bad, 0.0, v) for k, v in rewards.items()}, terminated,
+            time_limit(steps, limit) & ~terminated)

@@ -21,9 +21,8 @@ import numpy as np
 
 from motok.control.mdp.head import HEAD_FEATURES, HeadRewardConfig, head_distance, head_errors, head_goal, \
     head_lost, head_reward
-from motok.control.mdp.keyframes import given_starts, reference_bodies
-from motok.control.mdp.resets import check_start_frames, reference_state, sample_starts
-from motok.control.mdp.terminations import body_distances, time_limit
+from motok.control.mdp.resets import check_start_frames, given_starts, reference_bodies, reference_state, sample_starts
+from motok.control.mdp.terminations import body_distances, end_of_step
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
 from motok.sim.reference import ReferenceLibrary
@@ -103,12 +102,10 @@ class HMDTask:
         N = env.num_envs
         refs = reference_bodies(self.lib, self.clip[:, None], self.frame[:, None] + np.arange(c.goal_frames + 1))
         sim, ref = env.bodies, refs.take((slice(None), 0))
-        bad = diverged | invalid
-        rewards = {k: np.where(bad, 0.0, v) for k, v in head_reward(head_errors(sim, ref, self.head), c.reward).items()}
         dist = head_distance(sim.pos, ref.pos, self.head)
         lost = head_lost(dist, c.termination_distance) if c.early_termination else np.zeros(N, dtype=bool)
-        terminated = lost | bad
-        truncated = time_limit(self.steps, self.limit) & ~terminated
+        rewards, terminated, truncated = end_of_step(head_reward(head_errors(sim, ref, self.head), c.reward), lost,
+                                                     diverged, invalid, self.steps, self.limit)
         self._goal = head_goal(sim, refs.take((slice(None), slice(1, None))), self.head)
         info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "head_error": dist,
                 "mean_body_error": body_distances(sim, ref).mean(-1), "head_lost": lost, "diverged": diverged,

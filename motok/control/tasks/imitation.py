@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motok.control.mdp.observations import imitation_goal
-from motok.control.mdp.resets import check_start_frames, reference_state, sample_starts
+from motok.control.mdp.resets import check_start_frames, given_starts, reference_bodies, reference_state, sample_starts
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
-from motok.control.mdp.terminations import MODES, body_distances, time_limit, tracking_failure
+from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
 from motok.sim.obs import Bodies
@@ -59,9 +59,7 @@ class ImitationTask:
 
     def reference(self, clips: np.ndarray, frames: np.ndarray) -> Bodies:
         """Reference body states at ``frames`` of ``clips`` (clamped to each clip's last frame)."""
-        g = self.lib.frame_index(clips, frames)
-        L = self.lib
-        return Bodies(L.body_pos[g], L.body_vel[g], L.body_angvel[g], quat=L.body_quat[g])
+        return reference_bodies(self.lib, clips, frames)
 
     def _ahead(self, ids) -> np.ndarray:
         return self.frame[ids, None] + np.arange(1, self.cfg.goal_frames + 1)
@@ -73,8 +71,7 @@ class ImitationTask:
         if clips is None:
             c, f = sample_starts(L, len(ids), self.rng, K + 1, self.clip_p)
         else:
-            c = np.array([L.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), ids.shape)])
-            f = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), ids.shape).copy()
+            c, f = given_starts(L, clips, frames, len(ids))
             check_start_frames(L, c, f, K)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.frame[ids], self.steps[ids] = c, f, 0
@@ -105,13 +102,11 @@ class ImitationTask:
         g = L.frame_index(self.clip, self.frame)
         err = imitation_errors(sim.pos, ref.pos, env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:], L.qvel[g, 6:],
                                env.end_effectors)
-        bad = diverged | invalid
-        rewards = {k: np.where(bad, 0.0, v) for k, v in imitation_reward(err, c.reward).items()}
         dist = body_distances(sim, ref)
         fell = tracking_failure(dist, c.termination, c.termination_distance) if c.early_termination \
             else np.zeros(N, dtype=bool)
-        terminated = fell | bad
-        truncated = time_limit(self.steps, self.limit) & ~terminated
+        rewards, terminated, truncated = end_of_step(imitation_reward(err, c.reward), fell, diverged, invalid,
+                                                     self.steps, self.limit)
         info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "max_body_error": dist.max(-1),
                 "mean_body_error": dist.mean(-1), "diverged": diverged, "invalid_action": invalid,
                 "episode_steps": self.steps.copy()}

@@ -30,11 +30,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfig, check_keyframe_count,
-                                         check_keyframes, given_starts, inbetween_errors, inbetween_reward,
-                                         keyframe_goal, next_keyframe, reference_bodies, sample_keyframes,
+                                         check_keyframes, inbetween_errors, inbetween_reward,
+                                         keyframe_goal, next_keyframe, sample_keyframes,
                                          time_encoding)
-from motok.control.mdp.resets import reference_state, sample_starts
-from motok.control.mdp.terminations import MODES, body_distances, time_limit, tracking_failure
+from motok.control.mdp.resets import given_starts, reference_bodies, reference_state, sample_starts
+from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
 from motok.sim.obs import Bodies
@@ -177,13 +177,11 @@ class InbetweenTask:
         sim, ref = env.bodies, reference_bodies(L, self.clip, self.frame)
         err = inbetween_errors(sim.pos, ref.pos, env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:], L.qvel[g, 6:],
                                env.end_effectors)
-        bad = diverged | invalid
-        rewards = {k: np.where(bad, 0.0, v) for k, v in inbetween_reward(err, c.reward).items()}
         dist = body_distances(sim, ref)
         fell = tracking_failure(dist, c.termination, c.termination_distance) if c.early_termination \
             else np.zeros(N, dtype=bool)
-        terminated = fell | bad
-        truncated = time_limit(self.steps, self.limit) & ~terminated
+        rewards, terminated, truncated = end_of_step(inbetween_reward(err, c.reward), fell, diverged, invalid,
+                                                     self.steps, self.limit)
         hit = self.keyframes[:, 1:] == self.frame[:, None]  # the start keyframe is no target
         info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "at_keyframe": hit.any(1),
                 "keyframe_index": np.where(hit.any(1), hit.argmax(1) + 1, -1),

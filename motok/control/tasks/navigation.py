@@ -25,7 +25,7 @@ import numpy as np
 from motok.control.mdp.navigation import (head_fell, heading_frame_target, navigation_reward, planar_distance,
                                           sample_targets)
 from motok.control.mdp.resets import reference_state, sample_starts
-from motok.control.mdp.terminations import time_limit
+from motok.control.mdp.terminations import end_of_step
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
 from motok.sim.reference import ReferenceLibrary
@@ -141,16 +141,13 @@ class NavigationTask:
         self.target_steps += 1
         b = env.bodies
         root, rot = b.pos[:, 0], b.rot[:, 0]  # matrices: no quaternion conversion of every body
-        bad = diverged | invalid
-        terms = navigation_reward(root, b.vel[:, 0], rot, self.target, c)
-        rewards = {k: np.where(bad, 0.0, v) for k, v in terms.items()}
         dist = planar_distance(root, self.target)
         reached = dist < c.reach_radius
         self.reached_step = np.where(reached & (self.reached_step < 0), self.target_steps, self.reached_step)
         fell = head_fell(b.pos[:, self.head, 2], self.steps, c.fall_height) if c.early_termination \
             else np.zeros(env.num_envs, dtype=bool)
-        terminated = fell | bad
-        truncated = time_limit(self.steps, self.max_steps) & ~terminated
+        rewards, terminated, truncated = end_of_step(navigation_reward(root, b.vel[:, 0], rot, self.target, c), fell,
+                                                     diverged, invalid, self.steps, self.max_steps)
         ended = terminated | truncated
         retarget = (self.target_steps >= self.retarget_steps) & ~ended
         dt = env.dt

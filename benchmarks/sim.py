@@ -10,6 +10,11 @@ threads. ratio = env steps/s x substeps / raw 2-thread steps/s: the share of the
 physics throughput that survives the environment's Python.
 
     .venv/bin/python benchmarks/sim.py [--data DATA.h5] [--seconds 3] [--repeats 3]
+    .venv/bin/python benchmarks/sim.py --backend warp [--device cuda] --envs 64 1024 4096
+
+``--backend warp`` adds the MuJoCo Warp stepper (``pip install motok[gpu]``) to the same run: its
+environment rows (stepper ``warp``) and its raw rate, the recorded pairs stepped by MuJoCo Warp
+alone on the device (``mjw.step`` only, no host copies), so its rows sit beside the C MuJoCo ones.
 
 Other jobs may share the cores, and their load drifts within seconds: every environment run is
 paired with a raw-rate run just before it, each ratio uses its own pair, and the table gives the
@@ -59,12 +64,14 @@ def _pd(mdp: TaskEnv) -> np.ndarray:
     return mdp.task.next_reference()[0][:, env.hinge_adr] - env.qpos[:, env.hinge_adr]
 
 
-def run_env(hum, lib, n: int, stepper: str, seconds: float, record: list | None = None) -> tuple[float, float]:
+def run_env(hum, lib, n: int, stepper: str, seconds: float, record: list | None = None,
+            device: str = "cpu") -> tuple[float, float]:
     """Control steps per second (env-steps/s = this x n), and the CPU seconds per control step the
     calling thread spends outside the stepper's physics call (observation, goal, reward, resets,
     bookkeeping). Thread CPU time, unlike wall time, does not count time lost to other processes."""
-    mdp = imitation_mdp(hum, lib, SimConfig(num_envs=n, nthread=2, stepper=stepper), ImitationTaskConfig(),
-                        ActionConfig("current"), 0)
+    sim = (SimConfig(num_envs=n, backend="warp", device=device) if stepper == "warp"
+           else SimConfig(num_envs=n, nthread=2, stepper=stepper))
+    mdp = imitation_mdp(hum, lib, sim, ImitationTaskConfig(), ActionConfig("current"), 0)
     env = mdp.env
     mdp.reset()
     for _ in range(5):
@@ -116,6 +123,29 @@ def raw_rate(hum, pairs, substeps: int, nthread: int, cpu: bool = False) -> floa
         return len(qpos) * substeps / (clock() - t0)
 
 
+def raw_warp(hum, pairs, substeps: int, n: int, device: str, seconds: float) -> float:
+    """mj_step/s (world-steps) of MuJoCo Warp on ``n`` worlds started from recorded states, timing
+    only its step calls: the device's physics limit, as ``raw_rate`` is the CPU's."""
+    import warp as wp
+
+    from motok.sim.warp_stepper import WarpStepper
+
+    st = WarpStepper(hum, n, substeps, device=device)
+    qpos = np.concatenate([p[0] for p in pairs])
+    qvel = np.concatenate([p[1] for p in pairs])
+    ctrl = np.concatenate([p[2] for p in pairs])
+    rows = np.arange(n) % len(qpos)
+    st.set_state(np.arange(n), qpos[rows], qvel[rows])
+    st.step(ctrl[rows])  # compiles (first run only) and, on a GPU, captures the graph on the next step
+    st.step(ctrl[rows])
+    steps, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds or steps == 0:
+        st.step_tensor(st.ctrl_t)  # the same controls again: the state moves on, no host round trip
+        steps += 1
+    wp.synchronize_device(st.device)
+    return steps * n * substeps / (time.perf_counter() - t0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=None, help="motion-dataset (default: walk_normal slice of set 2)")
@@ -124,7 +154,12 @@ def main() -> None:
     ap.add_argument("--steppers", nargs="*", default=["batch", "rollout"])
     ap.add_argument("--seconds", type=float, default=3.0, help="timed seconds per measurement")
     ap.add_argument("--repeats", type=int, default=3, help="best of this many runs")
+    ap.add_argument("--backend", choices=["mujoco", "warp"], default="mujoco",
+                    help="warp: also the MuJoCo Warp stepper and its raw rate, in the same run")
+    ap.add_argument("--device", default="cpu", help="MuJoCo Warp's device (cpu, cuda)")
     args = ap.parse_args()
+    if args.backend == "warp" and "warp" not in args.steppers:
+        args.steppers = [*args.steppers, "warp"]
     with tempfile.TemporaryDirectory() as tmp:
         data = args.data or _dataset(Path(tmp))
         xml = args.humanoid or Path(tmp) / "humanoid.xml"
@@ -153,14 +188,23 @@ def main() -> None:
             runs = []
             for _ in range(args.repeats):
                 raw = raw_rate(hum, pairs, S, 2)
-                runs.append((*run_env(hum, lib, n, stepper, args.seconds), raw))
+                runs.append((*run_env(hum, lib, n, stepper, args.seconds, device=args.device), raw))
             ratios = [r * n * S / raw for r, _, raw in runs]
             rate, _, raw = max(runs)
             py_ms = 1e3 * min(py for _, py, _ in runs)
             phys_quiet = 1e3 * n * S / (2 * raw_cpu)
             print(f"{stepper:>8} {n:>4} {rate:>13,.1f} {rate * n:>12,.0f} {rate * n * S:>10,.0f} {raw:>10,.0f} "
                   f"{np.median(ratios):>6.2f} {f'{min(ratios):.2f}-{max(ratios):.2f}':>12} {py_ms:>10.2f} "
-                  f"{phys_quiet / (phys_quiet + py_ms):>6.2f}", flush=True)
+                  f"{f'{phys_quiet / (phys_quiet + py_ms):.2f}' if stepper != 'warp' else '-':>6}", flush=True)
+    if "warp" in args.steppers:
+        import warp as wp
+        print(f"MuJoCo Warp on {args.device} (warp {wp.__version__}): raw mj_step/s timing only its step calls, "
+              f"best of {args.repeats}; ratio: env mj_step/s over it")
+        for n in args.envs:
+            raw = max(raw_warp(hum, pairs, S, n, args.device, args.seconds) for _ in range(args.repeats))
+            rate, _ = run_env(hum, lib, n, "warp", args.seconds, device=args.device)
+            print(f"{'warp raw':>8} {n:>4} {raw:>10,.0f} mj_step/s; env {rate * n * S:,.0f} mj_step/s "
+                  f"({rate * n:,.0f} env-steps/s), ratio {rate * n * S / raw:.2f}", flush=True)
     print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 

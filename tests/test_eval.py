@@ -463,7 +463,7 @@ def test_every_eval_recipe_loads():
     # The default evaluator's text side is independent of the default GPT's (docs/eval.md).
     default = resolve_config(root / "evaluator.yaml").text_encoder
     gpt_default = {gpt_config(None, []).text_encoder, gpt_config(root.parent / "gpt" / "default.yaml").text_encoder}
-    assert default == EvaluatorConfig().text_encoder == "bow" and gpt_default == {"minilm"}
+    assert default == EvaluatorConfig().text_encoder == "bow" and gpt_default == {"minilm", "mpnet_tokens"} and default not in gpt_default
     assert resolve_config(root / "evaluator_minilm.yaml").text_encoder == "minilm"
     for path in sorted(root.glob("*.yaml")):
         if path.stem.startswith("evaluator"):

@@ -231,3 +231,161 @@ def test_torchrun_two_ranks_stay_identical(tiny_tokens, tmp_path):
     meta = json.loads((tmp_path / "ddp/bundle.json").read_text())
     hashes = meta["extra"]["rank_state_sha256"]
     assert meta["extra"]["world_size"] == 2 and len(hashes) == 2 and hashes[0] == hashes[1] == meta["model_sha256"]
+
+
+# ----------------------------------------------------------------- issue 18: CFG, held-out wordings, augmentation
+
+def test_classifier_free_guidance_mixes_the_two_logits():
+    from motok.gpt.sample import check_guidance
+    from motok.gpt.train import GPTError
+
+    torch.manual_seed(0)
+    cfg = GPTConfig(num_layers=2, dim=32, heads=4, block_size=12, dropout=0.0)
+    model = MotionGPT(cfg, K, TEXT_DIM, null_text=True).eval()
+    with torch.no_grad():
+        model.null_text.normal_()
+    text = torch.randn(3, TEXT_DIM)
+    # guidance 1 is the plain model, whatever the null text
+    a = generate(model, text, seeds=[0, 1, 2], record_logits=True, guidance=1.0)
+    b = generate(model, text, seeds=[0, 1, 2], record_logits=True, guidance=1.0, use_cache=False)
+    assert [c.tolist() for c in a.codes] == [c.tolist() for c in b.codes]
+    # guidance g: l_u + g (l_c - l_u) at the first step, with and without the cache
+    g = 2.5
+    first = generate(model, text, seeds=[0, 1, 2], record_logits=True, guidance=g)
+    with torch.no_grad():
+        lc = model(text)[:, -1]
+        lu = model(text, drop_text=torch.ones(3, dtype=torch.bool))[:, -1]
+    torch.testing.assert_close(first.logits[0], lu + g * (lc - lu), atol=1e-5, rtol=1e-5)
+    nocache = generate(model, text, seeds=[0, 1, 2], record_logits=True, guidance=g, use_cache=False)
+    assert [c.tolist() for c in first.codes] == [c.tolist() for c in nocache.codes]
+    for x, y in zip(first.logits, nocache.logits):
+        torch.testing.assert_close(x, y, atol=1e-4, rtol=1e-4)
+    # the null text really replaces the caption: the dropped rows do not depend on the text
+    with torch.no_grad():
+        lu2 = model(torch.randn(3, TEXT_DIM), drop_text=torch.ones(3, dtype=torch.bool))[:, -1]
+    torch.testing.assert_close(lu, lu2)
+    # a model without a null text refuses guidance with a clear error; bad scales are refused
+    with pytest.raises(GPTError, match="caption dropout"):
+        check_guidance(tiny(), 2.0)
+    with pytest.raises(GPTError, match=">= 0"):
+        check_guidance(model, -1.0)
+    check_guidance(tiny(), 1.0)
+
+
+def test_augmented_captions():
+    from motok.gpt.augment import caption_groups, crossover, noisy, recombined_captions, word_dropout_captions
+
+    assert crossover("A tired person walks forward.", "Someone walks straight ahead wearily.") == \
+        ["A tired person walks straight ahead wearily."]
+    assert crossover("a b", "c d") == []
+    caps = [["A person walks forward.", "Someone walks slowly like an old person."],
+            ["Someone walks slowly like an old person."], ["A person runs fast."]]
+    assert sorted(map(sorted, caption_groups(caps))) == [[0, 1], [2]]
+    new = recombined_captions(caps, 5, seed=0)
+    existing = {t for c in caps for t in c}
+    assert new and all(t not in existing for _, t in new) and all(g == [0, 1] for g, _ in new)
+    # "Someone walks forward." is one word short of the shorter source, so it is dropped; a cut at a
+    # word that ends one source can join two whole phrases (the rule's known imperfection).
+    assert {t for _, t in new} == {"A person walks slowly like an old person.",
+                                   "Someone walks slowly like an old person walks forward."}
+    assert recombined_captions(caps, 5, seed=0, keep=lambda t: "forward" not in t) == \
+        [([0, 1], "A person walks slowly like an old person.")]
+    assert len(recombined_captions(caps, 1, seed=0)) == 1  # at most per_group per group
+    v1 = word_dropout_captions(["a person walks forward slowly"], 0.5, 4, seed=1)
+    assert v1 == word_dropout_captions(["a person walks forward slowly"], 0.5, 4, seed=1)  # seeded
+    assert v1 and all(set(v.split()) < set(src.split()) and v for src, v in v1)
+    e = torch.nn.functional.normalize(torch.randn(512, 384), dim=-1)
+    d = noisy(e, 0.3, torch.Generator().manual_seed(0)) - e
+    assert d.norm(dim=-1).mean() == pytest.approx(0.3, rel=0.05)
+    assert noisy(e, 0.0) is e
+
+
+def test_heldout_wordings_never_train_and_augmentation_adds_pairs(tiny_tokens, tmp_path):
+    from motok.gpt.train import load_code_data
+    from motok.text.cache import TextEmbeddingCache
+    from motok.text.phrasings import is_heldout
+    from motok.tokenizer.tokens import TokenFile
+
+    _, tokens = tiny_tokens
+    cache = TextEmbeddingCache(tmp_path / "emb.h5")
+    plain = load_code_data(tokens, "train", "bow", cache)
+    with TokenFile(tokens) as tf:
+        texts = sorted({c[0] for i, s in enumerate(tf.splits) if s == "train" for c in tf.captions(i)})
+    n_held = sum(map(is_heldout, texts))
+    assert n_held > 0 and len(plain.text) == len(texts)
+    held = load_code_data(tokens, "train", "bow", cache, resolve_config(None, ["holdout=v1"]))
+    assert len(held.text) == len(texts) - n_held
+    assert len(held.pair_clip) < len(plain.pair_clip)
+    aug = load_code_data(tokens, "train", "bow", cache,
+                         resolve_config(None, ["holdout=v1", "recombine=10", "word_dropout=0.3",
+                                               "word_dropout_variants=2"]))
+    assert len(aug.pair_clip) > len(held.pair_clip) and len(aug.text) > len(held.text)
+    assert len(aug.text) == int(aug.pair_text.max()) + 1
+
+
+@pytest.mark.parametrize("override,match", [("caption_dropout=1.5", "caption_dropout"), ("holdout=v9", "holdout"),
+                                            ("guidance=2", "caption_dropout"), ("text_noise=-1", "text_noise"),
+                                            ("recombine=-1", "recombine")])
+def test_augmentation_settings_are_checked(tiny_tokens, tmp_path, override, match):
+    from motok.config import ConfigError
+
+    _, tokens = tiny_tokens
+    with pytest.raises(ConfigError, match=match):
+        train(resolve_config(None, TINY_GPT + ["iterations=1", override]), tokens, tmp_path / "x", command="pytest")
+
+
+def test_caption_dropout_run_samples_with_its_guidance(tiny_tokens, tmp_path):
+    from motok.cli.main import app
+
+    _, tokens = tiny_tokens
+    run = tmp_path / "cfg"
+    train(resolve_config(None, TINY_GPT + ["iterations=3", "caption_dropout=0.5", "guidance=3", "text_noise=0.1",
+                                           "holdout=v1", "recombine=3"]), tokens, run, command="pytest")
+    meta, state, _ = load_bundle(run)
+    assert "null_text" in state and meta["config"]["guidance"] == 3.0
+    runner = CliRunner()
+    base = ["--quiet", "gpt", "sample", "--gpt", str(run), "--text", "a person walks forward", "--seconds", "1.6",
+            "--json"]
+    r = runner.invoke(app, base + ["-o", str(tmp_path / "a.h5")])
+    assert r.exit_code == 0, r.output
+    with MotionFile(tmp_path / "a.h5", "motion") as mf:
+        assert mf.provenance.config["guidance"] == 3.0  # the run's own guidance is the default
+    r1 = runner.invoke(app, base + ["-o", str(tmp_path / "b.h5"), "--guidance", "1"])
+    assert r1.exit_code == 0, r1.output
+    plain = tmp_path / "plain"
+    train(resolve_config(None, TINY_GPT + ["iterations=1"]), tokens, plain, command="pytest")
+    bad = runner.invoke(app, ["gpt", "sample", "--gpt", str(plain), "--text", "x", "--guidance", "2",
+                              "-o", str(tmp_path / "c.h5")])
+    assert bad.exit_code == 2 and "caption dropout" in bad.output
+
+
+def test_snapping_conditions_new_sentences_on_training_captions(tiny_tokens, tmp_path):
+    from motok.gpt.sample import load_for_sampling
+    from motok.gpt.snap import SnappingCache, training_captions
+    from motok.text.encoders import encode
+
+    tok, tokens = tiny_tokens
+    run = tmp_path / "snap"
+    train(resolve_config(None, TINY_GPT + ["iterations=1", "holdout=v1", "snap=1"]), tokens, run, command="pytest")
+    *_, cache = load_for_sampling(run)
+    assert isinstance(cache, SnappingCache)
+    caps = training_captions(tokens, "train", "v1")
+    assert caps and len(cache.captions) == len(caps)
+    new = "somebody strolls at a steady pace"
+    e = cache.embed([caps[0], new], "bow", write=False)
+    np.testing.assert_array_equal(e[0], encode([caps[0]], "bow")[0])  # a training caption is unchanged
+    ref = encode(caps, "bow")
+    q = encode([new], "bow")[0]
+    nearest = int(np.argmax(ref @ q))
+    np.testing.assert_allclose(e[1], ref[nearest], atol=1e-6)  # k = 1: exactly its nearest caption
+    assert cache.snapped[new] == [caps[nearest]]
+    k3 = SnappingCache(cache.cache, caps, "bow", 3).embed([new], "bow", write=False)[0]
+    assert np.linalg.norm(k3) == pytest.approx(1.0, abs=1e-5) and not np.allclose(k3, q)
+    *_, off = load_for_sampling(run, snap=0)  # --snap 0 turns it off
+    assert not isinstance(off, SnappingCache)
+    from motok.cli.main import app
+    r = CliRunner().invoke(app, ["--quiet", "gpt", "sample", "--gpt", str(run), "--text", new, "--seconds", "0.8",
+                                 "-o", str(tmp_path / "s.h5"), "--json"])
+    assert r.exit_code == 0, r.output
+    with MotionFile(tmp_path / "s.h5", "motion") as mf:
+        assert mf.provenance.config["snapped"] == {new: caps[nearest]}

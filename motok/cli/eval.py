@@ -185,3 +185,77 @@ def motion_matching(
     results.print(f"threshold {th['value']:.3f} ({th['definition']}); {rep['seconds']} s")
     for p in outs:
         results.print(f"wrote {p}", soft_wrap=True, highlight=False)
+
+
+@app.command("labels", epilog=examples(
+    "motok eval labels -d runs/bandai2.h5 --motions gen.h5",
+    "motok eval labels -d runs/bandai2.h5 --gpt runs/gpt --retrieval minilm -o labels.json"))
+def labels_command(
+    data: Path = data_option("The motion-dataset: the classifier is fitted on its train split."),
+    motions: list[Path] = typer.Option([], "--motions", metavar="PATH", callback=existing,
+                                       help="Score a motion artifact (repeatable): each clip's content/style "
+                                            "labels, or its caption, say what it should show."),
+    gpt: Optional[Path] = typer.Option(None, "--gpt", "-g", help="Generate from the prompt sets with this GPT "
+                                       "run and score it."),
+    retrieval: Optional[str] = typer.Option(None, "--retrieval", metavar="ENCODER", help="Add the retrieval "
+                                            "baseline: nearest training caption under ENCODER (minilm, mpnet, "
+                                            "bow), its real motion."),
+    prompts: str = typer.Option("train,heldout_wordings,paraphrases", "--prompts", help="Prompt sets of the "
+                                "phrasing-held-out split (comma-separated)."),
+    prompt_split: str = typer.Option("test", "--prompt-split", help="Split whose captions make the train and "
+                                     "heldout_wordings prompts (val to choose settings; never tune on test)."),
+    num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per prompt with --gpt."),
+    seed: int = typer.Option(0, "--seed", help="Sampling seed with --gpt."),
+    guidance: Optional[float] = typer.Option(None, "--guidance", help="CFG scale with --gpt (default: the run's)."),
+    snap: Optional[int] = typer.Option(None, "--snap", help="With --gpt: condition new sentences on their K nearest "
+                                       "training captions (0 = off; default: the run's)."),
+    save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples (.h5).",
+                                                   suffixes=H5, required=False),
+    out: Optional[Path] = output_option(help="Write the report (.json).", suffixes=(".json",), required=False),
+    text_cache: Optional[Path] = typer.Option(None, "--text-cache", help="Text-embeddings artifact for --retrieval."),
+    classifier_cache: Optional[Path] = typer.Option(None, "--classifier-cache", help="Keep the fitted classifier in "
+                                                    "this .npz and reuse it while data and settings are the same."),
+    sets: list[str] = Sets, as_json: bool = JsonOut,
+):
+    """Label accuracy: a content/style classifier fitted on real train motion (its test accuracy is
+    reported) applied to generated motion, per prompt set (docs/gpt.md, issue 18)."""
+    from motok.config import load_config
+    from motok.eval.labels import LabelsConfig
+    from motok.eval.prompted import labels_report, summary_lines
+    cfg = run(load_config, LabelsConfig, None, sets)
+    names = [p.strip() for p in prompts.split(",") if p.strip()]
+    rep = run(labels_report, data, motions=motions, gpt=gpt, retrieval=retrieval, sets=names,
+              samples=num_samples, seed=seed, guidance=guidance, save_generated=save_generated, cfg=cfg, out=out,
+              prompt_split=prompt_split, text_cache=text_cache, classifier_cache=classifier_cache, snap=snap)
+    if as_json:
+        print_json(rep)
+        return
+    for line in summary_lines(rep):
+        results.print(line, soft_wrap=True, highlight=False)
+    results.print(f"{rep['seconds']} s")
+
+
+@app.command("text-separation", epilog=examples(
+    "motok eval text-separation --encoder minilm --encoder mpnet -d runs/bandai2.h5"))
+def text_separation_command(
+    encoders: list[str] = typer.Option(["minilm"], "--encoder", metavar="NAME", help="Text encoder (repeatable)."),
+    data: Optional[Path] = data_option("A motion-dataset: adds the nearest-training-caption label accuracy per "
+                                       "prompt set.", required=False),
+    cache: Optional[Path] = typer.Option(None, "--text-cache", help="A text-embeddings artifact to reuse/extend."),
+    as_json: bool = JsonOut,
+):
+    """Cosine similarities between sentences that differ only in left/right, one/both hands, walk/run,
+    against other wordings of the same request (docs/gpt.md)."""
+    from motok.eval.prompted import text_separation_report
+    rep = run(text_separation_report, data, encoders, cache=cache)
+    if as_json:
+        print_json(rep)
+        return
+    for enc, row in rep["encoders"].items():
+        for name, c in row["contrasts"].items():
+            results.print(f"{enc} / {name}: same wording {c['same_wording']:.3f}, same meaning "
+                          f"{c['same_meaning']:.3f}, margin {c['margin']:+.3f}, closer {c['closer_rate']:.2f}",
+                          highlight=False)
+        for s, acc in row.get("nearest_caption", {}).items():
+            results.print(f"{enc} / nearest caption / {s}: content {acc['content']:.3f}"
+                          + (f", style {acc['style']:.3f}" if acc["style"] is not None else ""), highlight=False)

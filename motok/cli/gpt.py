@@ -69,6 +69,11 @@ def sample(
     top_p: Optional[float] = typer.Option(None, "--top-p", help="Nucleus: keep the codes holding p of the mass, "
                                           "p in (0, 1]."),
     argmax: bool = typer.Option(False, "--argmax", help="Greedy: the most likely code at each step."),
+    guidance: Optional[float] = typer.Option(None, "--guidance", help="Classifier-free guidance scale, >= 0 "
+                                             "(1 = off; default: the run's own, from its recipe). Needs a GPT "
+                                             "trained with caption_dropout."),
+    snap: Optional[int] = typer.Option(None, "--snap", help="Condition a sentence that is not a training caption "
+                                       "on its K nearest training captions (0 = off; default: the run's)."),
     seconds: Optional[float] = typer.Option(None, "--seconds", help="Target length in seconds, > 0: End is masked "
                                             "before it and forced at it."),
     out: Path = output_option(help="Output motion artifact (.h5).", suffixes=H5),
@@ -102,7 +107,7 @@ def sample(
             fail(f"--texts-file {texts_file}: not a readable text file ({e})")
     opts = dict(num_samples=num_samples, seed=seed, temperature=temperature, top_k=top_k, top_p=top_p,
                 argmax=argmax, seconds=seconds, render=render, bvh=bvh, tokenizer=tokenizer,
-                allow_mismatch=allow_mismatch)
+                allow_mismatch=allow_mismatch, guidance=guidance, snap=snap)
     if physics is None and expert is None and codebooks is None:
         _report(run(_sample, gpt, texts, out, **opts), as_json, "gpt sample")
         return

@@ -11,8 +11,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, fail, input_option, output_option,
-                              recipe_option, report, results, run)
+from motok.cli.common import (H5, Device, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
+                              output_option, recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples
 
 PRIORS = "continuous | discrete | discrete+ | hybrid | hybrid-vq"
@@ -32,13 +32,14 @@ def distill_cmd(
     resume: bool = Resume,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the weight schedules "
                                         "still span the recipe's iterations; --resume continues)."),
+    device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """Distil the expert into a latent prior: the student acts, the expert labels (DAgger), Eq. 6."""
     from motok.config import load_config
     from motok.control.distill import DistillConfig, train_from_expert
 
-    cfg = run(load_config, DistillConfig, recipe, sets)
+    cfg = run(load_config, DistillConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_expert, cfg, expert, out, prior=prior, data=data, clips=clips, split=split,
                   resume=resume, until=until)
     report(summary, as_json, f"control distill {prior}")
@@ -64,19 +65,21 @@ def eval_cmd(
     termination: Optional[str] = typer.Option(None, "--termination",
                                               help="Failure test: 'any' body or the 'mean' (default: the prior's)."),
     distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the prior's)."),
+    device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """A prior on imitation (success, MPJPE, G-MPJPE, root errors) or a task policy on its task."""
     if task not in EVAL_TASKS:
         fail(f"--task must be one of {', '.join(EVAL_TASKS)}, not {task!r}")
     if task != "imitation":
-        return _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json)
+        return _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json,
+                          valid_device(device))
     if prior is None:
         fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --run RUN)")
     from motok.control.prior_eval import evaluate_prior
 
     res = run(evaluate_prior, prior, task=task, data=data, clips=clips, split=split, codebooks=codebooks,
-              render=render, termination=termination, distance=distance)
+              render=render, termination=termination, distance=distance, device=valid_device(device))
     o = res["overall"]
     summary = {"prior": str(prior), "kind": res["checkpoint"]["prior"]["kind"], "codebooks": res["checkpoint"]["codebooks"],
                **{k: o[k] for k in ("clips", "success_rate", "success_rate_any_body", "seconds_played", "mpjpe_mm",
@@ -86,12 +89,13 @@ def eval_cmd(
     report(res if as_json else summary, as_json, f"control eval {task} ({o['termination']} ends a clip)")
 
 
-def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json) -> None:
+def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json, device=None) -> None:
     if run_dir is None or prior is not None:
         fail(f"--task {task} evaluates a trained task policy: pass --run RUN (from `motok control train`), not --prior")
     from motok.control.task_train import evaluate_run
 
-    res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render)
+    res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render,
+              device=device)
     if res["task"] != task:
         fail(f"{run_dir} is a {res['task']!r} policy, not {task!r}")
     if as_json:

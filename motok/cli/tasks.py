@@ -10,7 +10,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, Resume, Sets, data_option, input_option, output_option, recipe_option, report, run
+from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, output_option,
+                              recipe_option, report, run)
 from motok.cli.conventions import examples
 
 TASK_NAMES = "navigation | inbetween | hmd"
@@ -31,13 +32,14 @@ def train_cmd(
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
     resume: bool = Resume,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (--resume continues)."),
+    device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
     from motok.config import load_config
     from motok.control.task_train import TaskTrainConfig, train_from_prior
 
-    cfg = run(load_config, TaskTrainConfig, recipe, sets)
+    cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,
                   split=split, resume=resume, until=until)
     report(summary, as_json, f"control train {cfg.task if task is None else task}")

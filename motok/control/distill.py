@@ -306,6 +306,7 @@ def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
     """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""
     meta, state, hum = runner.load_run(run, KIND)
     cfg = from_dict(DistillConfig, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
     ex = meta["extra"]
     model = LatentPrior(cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
     model.load_state_dict(split_state(state, "model."))

@@ -268,6 +268,7 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
 def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
     meta, state, hum = runner.load_run(run, KIND)
     cfg = from_dict(ExpertConfig, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
     ex = meta["extra"]
     ac = build_actor_critic(cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
     ac.load_state_dict(split_state(state, "ac."))
@@ -275,7 +276,7 @@ def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
 
 
 def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None = None, render=None,
-                 termination: str | None = None, distance: float | None = None) -> dict:
+                 termination: str | None = None, distance: float | None = None, device: str | None = None) -> dict:
     """``motok control expert eval``: :func:`evaluate` the checkpoint in ``run`` on its training
     clips (or the clips of ``data`` in ``split`` and/or matching the ``clips`` glob), with the
     summary per content and per style, and write ``RUN/eval.json`` (``RUN/eval_SPLIT.json``) with
@@ -287,6 +288,7 @@ def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None 
         cfg.task.termination = termination
     if distance is not None:
         cfg.task.termination_distance = distance
+    cfg.env.on(device)
     src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split, hint="; pass --data")
     res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch)
     res["groups"] = by_group(res["clips"])

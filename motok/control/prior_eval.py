@@ -22,7 +22,7 @@ TASKS = ("imitation",)
 
 def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None = None, split: str | None = None,
                    codebooks: int | None = None, render=None, termination: str | None = None,
-                   distance: float | None = None) -> dict:
+                   distance: float | None = None, device: str | None = None) -> dict:
     """Success, MPJPE, G-MPJPE, root velocity and acceleration errors of the prior in ``run`` on
     its distillation clips (or the clips of ``data`` in ``split`` / matching ``clips``), per clip,
     per content and style, and overall; written to ``PRIOR/eval[_SPLIT][_mM].json`` with the
@@ -38,6 +38,7 @@ def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None
         cfg.task.termination = termination
     if distance is not None:
         cfg.task.termination_distance = distance
+    cfg.env.on(device)
     src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split)
     res = evaluate(hum, StudentPolicy(model, codebooks), lib, cfg.env, cfg.task, cfg.action, render,
                    batch=cfg.eval_batch)

@@ -226,6 +226,7 @@ def load_task_run(run) -> tuple[TaskTrainConfig, Humanoid, ActorCritic, LatentPr
     run = Path(run)
     meta, state, hum = runner.load_run(run, KIND)
     cfg = from_dict(TaskTrainConfig, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
     pcfg, phum, model, _ = load_prior(runner.linked_path(run, meta, "prior"))
     if runner.mjcf_hash(phum) != meta["extra"]["mjcf_sha256"]:
         raise UserError(f"{run}: its prior now has another humanoid than the one the policy was trained on")
@@ -236,12 +237,13 @@ def load_task_run(run) -> tuple[TaskTrainConfig, Humanoid, ActorCritic, LatentPr
 
 
 def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
-                 split: str | None = None, render=None) -> dict:
+                 split: str | None = None, render=None, device: str | None = None) -> dict:
     """``motok control eval --task T --run RUN``: the task's evaluation of the policy in ``run``
     on ``episodes`` episodes (start states from its clips, or those of ``data`` / ``clips`` /
     ``split``), written to ``RUN/eval_TASK[_SPLIT].json`` with the checkpoint and provenance."""
     run = Path(run)
     cfg, hum, ac, model, scale, meta = load_task_run(run)
+    cfg.env.on(device)
     src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split)
     res = evaluate_policy(cfg, hum, lib, model, scale, ac, episodes, seed, render=render)
     res = {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in res.items()}  # JSON: per-step arrays as lists

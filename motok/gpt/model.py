@@ -15,6 +15,16 @@ Residual-VQ tokenizers: the model predicts the first codebook only (one token pe
 motion is decoded from that codebook alone (``M = 1``), which quantizer dropout trained the
 tokenizer to do. docs/gpt.md discusses it.
 
+Token-level conditioning (``text_tokens: P``, issue 18): instead of one pooled sentence vector,
+the encoder's per-token outputs (padded or cut to P, a ``*_tokens`` text encoder) take positions
+0..P-1, each projected by ``W_c``, and the causal self-attention reads them as a prefix (the
+prefix-LM form of conditioning; cross-attention is the other). The output at position P - 1
+scores the first code, so logits and sampling are unchanged for the caller.
+
+Classifier-free guidance (Ho & Salimans 2022, as MoMask, Guo et al. 2024, uses it for text to
+motion tokens): a model trained with caption dropout has a learned null text; sampling mixes the
+logits ``l_u + g (l_c - l_u)`` of the caption and of the null text (:mod:`motok.gpt.sample`).
+
 Sampling keeps a key/value cache (:class:`KVCache`) so each new token costs one position's
 worth of compute instead of re-running the whole prefix.
 """
@@ -40,6 +50,9 @@ class GPTConfig:
     block_size: int = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
     ff_mult: int = 4
     dropout: float = 0.1
+    # Token-level conditioning (issue 18): 0 = one pooled sentence vector at position 0 (the paper);
+    # P > 0 = the encoder's P per-token outputs as a prefix of P positions (a ``*_tokens`` encoder).
+    text_tokens: int = 0
 
 
 class KVCache:
@@ -47,7 +60,7 @@ class KVCache:
 
     def __init__(self, cfg: GPTConfig, batch: int, device=None, dtype=torch.float32):
         hd = cfg.dim // cfg.heads
-        shape = (batch, cfg.heads, cfg.block_size, hd)
+        shape = (batch, cfg.heads, cfg.block_size + max(cfg.text_tokens, 1) - 1, hd)
         self.k = [torch.zeros(shape, device=device, dtype=dtype) for _ in range(cfg.num_layers)]
         self.v = [torch.zeros(shape, device=device, dtype=dtype) for _ in range(cfg.num_layers)]
         self.length = 0
@@ -104,15 +117,22 @@ class Block(nn.Module):
 class MotionGPT(nn.Module):
     """``forward(text, idx) -> logits (B, 1 + L, K + 1)``: position i scores token i + 1 (Eq. 4)."""
 
-    def __init__(self, cfg: GPTConfig, codebook_size: int, text_dim: int):
+    def __init__(self, cfg: GPTConfig, codebook_size: int, text_dim: int, null_text: bool = False):
         super().__init__()
         if cfg.block_size < 2:
             raise ConfigError("model.block_size must be >= 2 (the text and one code)")
         self.cfg, self.codebook_size, self.text_dim = cfg, codebook_size, text_dim
         self.end_id, self.pad_id = codebook_size, codebook_size + 1
         self.tok_emb = nn.Embedding(codebook_size + 2, cfg.dim)
-        self.text_proj = nn.Linear(text_dim, cfg.dim)
-        self.pos_emb = nn.Embedding(cfg.block_size, cfg.dim)
+        self.prefix = max(cfg.text_tokens, 1)  # positions the text takes
+        if text_dim % self.prefix:
+            raise ConfigError(f"model.text_tokens {cfg.text_tokens} does not divide the text features' size {text_dim}")
+        self.text_proj = nn.Linear(text_dim // self.prefix, cfg.dim)
+        # The learned "no caption" input of classifier-free guidance (Ho & Salimans 2022), trained by
+        # caption dropout; only in models trained with it, so older checkpoints load unchanged.
+        self.null_text = nn.Parameter(torch.zeros(cfg.dim)) if null_text else None
+        self.default_guidance = 1.0  # the sampling default recorded at training (TrainConfig.guidance)
+        self.pos_emb = nn.Embedding(cfg.block_size + self.prefix - 1, cfg.dim)
         self.drop = nn.Dropout(cfg.dropout)
         self.blocks = nn.ModuleList([Block(cfg) for _ in range(cfg.num_layers)])
         self.ln_f = nn.LayerNorm(cfg.dim)
@@ -143,30 +163,39 @@ class MotionGPT(nn.Module):
         return KVCache(self.cfg, batch, p.device, p.dtype)
 
     def forward(self, text: torch.Tensor | None, idx: torch.Tensor | None = None,
-                cache: KVCache | None = None) -> torch.Tensor:
+                cache: KVCache | None = None, drop_text: torch.Tensor | None = None) -> torch.Tensor:
         """``text`` (B, text_dim) is position 0 and must come first (with or without a cache);
         ``idx`` (B, L) are tokens at the following positions. With a cache, only the new
-        positions are computed and the logits returned are theirs."""
+        positions are computed and the logits returned are theirs. ``drop_text`` (B,) bool puts
+        the learned null text at position 0 of those rows instead (caption dropout; CFG)."""
         start = cache.length if cache is not None else 0
         parts = []
         if text is not None:
             if start != 0:
                 raise ValueError("the text embedding is position 0: pass it on the first call only")
-            parts.append(self.text_proj(text)[:, None])
+            t = self.text_proj(text.reshape(text.shape[0], self.prefix, -1))
+            if drop_text is not None:
+                if self.null_text is None:
+                    raise ValueError("this model has no null text: it was trained without caption_dropout")
+                t = torch.where(drop_text[:, None, None], self.null_text.to(t.dtype).expand_as(t), t)
+            parts.append(t)
         elif start == 0:
             raise ValueError("the first call needs the text embedding")
         if idx is not None and idx.shape[1]:
             parts.append(self.tok_emb(idx))
         x = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
         T = x.shape[1]
-        if start + T > self.cfg.block_size:
-            raise ValueError(f"sequence of {start + T} positions exceeds block_size {self.cfg.block_size}")
+        if start + T > self.cfg.block_size + self.prefix - 1:
+            raise ValueError(f"sequence of {start + T - self.prefix + 1} positions exceeds block_size "
+                             f"{self.cfg.block_size}")
         pos = torch.arange(start, start + T, device=x.device)
         x = self.drop(x + self.pos_emb(pos))
         for i, blk in enumerate(self.blocks):
             x = blk(x, cache, i)
         if cache is not None:
             cache.length += T
+        if text is not None and self.prefix > 1:
+            x = x[:, self.prefix - 1:]  # the last text position scores the first code, as position 0 does
         return self.head(self.ln_f(x))
 
 

@@ -69,16 +69,28 @@ class Generation:
 def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor | None = None,
              temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None,
              argmax: bool = False, seeds: list[int] | None = None, use_cache: bool = True,
-             record_logits: bool = False) -> Generation:
-    """Autoregressive codes for each row of ``text`` (B, text_dim); see the module docstring."""
+             record_logits: bool = False, guidance: float | None = None) -> Generation:
+    """Autoregressive codes for each row of ``text`` (B, text_dim); see the module docstring.
+    ``guidance`` (default: the model's own, from its training config) != 1 applies classifier-free
+    guidance."""
     model.eval()
     B, end, pad, cap = text.shape[0], model.end_id, model.pad_id, model.max_codes
     dev = text.device
+    g_scale = float(model.default_guidance if guidance is None else guidance)
+    check_guidance(model, g_scale)
+    cfg_on = g_scale != 1.0
     if target_len is not None:
         target_len = torch.as_tensor(target_len, device=dev).clamp(1, cap)
     gens = [torch.Generator().manual_seed(int(s)) for s in (seeds if seeds is not None else range(B))]
-    cache = model.new_cache(B) if use_cache else None
-    logits = model(text, None, cache)[:, -1]
+    # With guidance the batch holds every row twice: with its text, then with the null text.
+    rows_text = torch.cat([text, text]) if cfg_on else text
+    drop = torch.arange(2 * B, device=dev) >= B if cfg_on else None
+    cache = model.new_cache(len(rows_text)) if use_cache else None
+
+    def step(lg: torch.Tensor) -> torch.Tensor:  # l_u + g (l_c - l_u), Ho & Salimans 2022, Eq. 6 on logits
+        return lg[B:] + g_scale * (lg[:B] - lg[B:]) if cfg_on else lg
+
+    logits = step(model(rows_text, None, cache, drop_text=drop)[:, -1])
     seq = torch.empty(B, 0, dtype=torch.long, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     lengths = torch.full((B,), cap, dtype=torch.long, device=dev)
@@ -103,8 +115,22 @@ def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor |
             break
         feed = torch.where(done, torch.full_like(tok, pad), tok)
         seq = torch.cat([seq, feed[:, None]], dim=1)
-        logits = model(None, feed[:, None], cache)[:, -1] if use_cache else model(text, seq)[:, -1]
+        fed = torch.cat([seq, seq]) if cfg_on else seq
+        if use_cache:
+            out = model(None, fed[:, -1:], cache)
+        else:
+            out = model(rows_text, fed, drop_text=drop)
+        logits = step(out[:, -1])
     return Generation([seq[b, :lengths[b]].cpu() for b in range(B)], recorded, seq.shape[1] + 1)
+
+
+def check_guidance(model: MotionGPT, guidance: float) -> None:
+    """Guidance needs a scale >= 0 and, unless it is 1 (off), a model with a null text."""
+    if not (math.isfinite(guidance) and guidance >= 0):
+        raise GPTError(f"--guidance {guidance} must be >= 0 (1 = no guidance)")
+    if guidance != 1.0 and model.null_text is None:
+        raise GPTError(f"--guidance {guidance} needs a GPT trained with caption dropout (caption_dropout > 0); "
+                       f"this one was not: use --guidance 1")
 
 
 def _slug(text: str, n: int = 40) -> str:
@@ -138,9 +164,12 @@ def check_sampling(texts: list[str], *, num_samples: int = 1, temperature: float
 
 
 def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allow_mismatch: bool = False,
-                      error: type[Exception] = GPTError):
+                      error: type[Exception] = GPTError, snap: int | None = None):
     """The GPT of ``run``, the tokenizer that decodes its codes (``tokenizer`` or the one it was
-    trained with) and its caption cache: ``(model, meta, tok_model, tok_meta, tok_run, cache)``."""
+    trained with) and its caption cache: ``(model, meta, tok_model, tok_meta, tok_run, cache)``.
+    With ``snap`` (default: the run's recipe) the cache snaps new sentences (:mod:`motok.gpt.snap`)."""
+    from motok.gpt.snap import snapping
+
     from motok.tokenizer.train import load_tokenizer
 
     run = Path(run)
@@ -154,14 +183,17 @@ def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allo
                     f"vs {ex['tokenizer_sha256'][:12]}); pass --tokenizer or --allow-mismatch")
     # A missing cache only costs encoding the texts again.
     cache = TextEmbeddingCache(bundle_ref(run, meta, "text_cache", required=False))
-    return model, meta, tok_model, tok_meta, tok_run, cache
+    k = int(meta["config"].get("snap", 0) if snap is None else snap)
+    if k < 0:
+        raise error(f"--snap {k} must be >= 0 (0 = off)")
+    return model, meta, tok_model, tok_meta, tok_run, snapping(cache, run, meta, k)
 
 
 def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: int = 1, seed: int = 0,
            temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
            seconds: float | None = None, render: str | Path | None = None, bvh: str | Path | None = None,
            tokenizer: str | Path | None = None, allow_mismatch: bool = False, batch_size: int = 64,
-           command: str | None = None) -> dict:
+           guidance: float | None = None, snap: int | None = None, command: str | None = None) -> dict:
     """Sample ``num_samples`` motions per text, decode them into one ``motion`` artifact ``out``,
     and optionally render GIFs/MP4s and BVHs (one per clip, numbered when there are several)."""
     from motok.render.stick import SUFFIXES
@@ -177,9 +209,11 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
     if bvh is not None:
         check_writable(bvh, what="--bvh")
     t0 = time.perf_counter()
-    model, meta, tok_model, tok_meta, tok_run, cache = load_for_sampling(run, tokenizer, allow_mismatch)
+    model, meta, tok_model, tok_meta, tok_run, cache = load_for_sampling(run, tokenizer, allow_mismatch, snap=snap)
     ex = meta["extra"]
     check_sampling(texts, **opts, codebook_size=int(ex["codebook_size"]))
+    guidance = float(model.default_guidance if guidance is None else guidance)
+    check_guidance(model, guidance)
     emb = torch.from_numpy(cache.embed(texts, ex["text_encoder"], write=False))
     truncated = [{"text": i + 1, "tokens": cache.truncated[t]} for i, t in enumerate(texts) if t in cache.truncated]
     for tr in truncated:  # printed even with --quiet: the motion answers another text than the one given
@@ -202,7 +236,7 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
         chunk = rows[a:a + batch_size]
         tl = None if target is None else torch.full((len(chunk),), target)
         g = generate(model, emb[[i for i, _ in chunk]], target_len=tl, temperature=temperature, top_k=top_k,
-                     top_p=top_p, argmax=argmax, seeds=[seed + j for _, j in chunk])
+                     top_p=top_p, argmax=argmax, seeds=[seed + j for _, j in chunk], guidance=guidance)
         codes += g.codes
     t_gen = time.perf_counter()
 
@@ -220,7 +254,8 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
                                       captions=[(texts[i], "", 0.0, 0.0)]))
     cfg = {"gpt": str(run), "tokenizer": str(tok_run), "texts": list(texts), "num_samples": num_samples,
            "seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p, "argmax": argmax,
-           "seconds": seconds, "target_tokens": target, "codebooks_decoded": 1}
+           "seconds": seconds, "target_tokens": target, "codebooks_decoded": 1, "guidance": guidance,
+           "snapped": {t: c[0] for t, c in getattr(cache, "snapped", {}).items()}}
     prov = Provenance(command=command or command_line(), config=cfg,
                       inputs={str(Path(run) / "model.safetensors"): meta["model_sha256"],
                               str(tok_run / "model.safetensors"): tok_meta["model_sha256"]})

@@ -37,19 +37,16 @@ from motok.checkpoint import MetricsLog, load_bundle, register_kind, resolve_ref
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
-from motok.errors import MotokError
 from motok.optim import OptimConfig, lr_factor
+from motok.gpt.augment import noisy
+from motok.gpt.data import (HOLDOUTS, IGNORE, CodeData, GPTError, SequenceSampler, corrupt,  # noqa: F401
+                             default_cache_path, load_code_data, make_batch)
 from motok.gpt.model import GPTConfig, MotionGPT
 from motok.text.cache import TextEmbeddingCache
 from motok.tokenizer.tokens import TokenFile
 
 KIND = "gpt"
 register_kind(KIND, (1,))
-IGNORE = -100
-
-
-class GPTError(MotokError, ValueError):
-    pass
 
 
 @dataclass
@@ -62,6 +59,16 @@ class TrainConfig:
     text_cache: str = ""  # text-embeddings artifact; "" = next to the tokens artifact
     tau: float = 0.5  # fraction of input codes replaced by random codes
     tau_uniform: bool = False  # draw tau ~ U[0, 1] per sequence instead
+    # Issue 18. holdout "v1": captions in the held-out wordings of motok.text.phrasings never train.
+    holdout: str = ""
+    # Caption augmentation (motok.gpt.augment), all off by default:
+    recombine: int = 0  # new captions per group of clips, recombined from the captions' own phrases
+    word_dropout: float = 0.0  # probability of dropping a word, in word_dropout_variants copies per caption
+    word_dropout_variants: int = 0
+    text_noise: float = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
+    caption_dropout: float = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
+    guidance: float = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
+    snap: int = 0  # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
     iterations: int = 2000
     batch_size: int = 64  # global: split evenly over the ranks
     split: str = "train"
@@ -72,87 +79,6 @@ class TrainConfig:
     save_every: int = 500
     device: str = "auto"  # auto | cpu | cuda
     threads: int = 0  # torch intra-op threads; 0 = torch's default
-
-
-# --------------------------------------------------------------------------- data
-
-@dataclass
-class CodeData:
-    codes: torch.Tensor  # (S,) first-codebook codes of every clip, concatenated
-    starts: torch.Tensor  # (C,) per clip
-    lengths: torch.Tensor  # (C,)
-    pair_clip: torch.Tensor  # (P,) one (clip, caption) pair per row: the clip ...
-    pair_text: torch.Tensor  # (P,) ... and the row of its caption in `text`
-    text: torch.Tensor  # (U, text_dim) embeddings of the unique captions
-
-
-def default_cache_path(tokens: str | Path) -> Path:
-    tokens = Path(tokens)
-    return tokens.with_name(tokens.stem + ".text-embeddings.h5")
-
-
-def load_code_data(tokens: str | Path, split: str, encoder: str, cache: TextEmbeddingCache) -> CodeData:
-    """Codes of the first codebook of every clip in ``split`` with their caption embeddings."""
-    with TokenFile(tokens) as tf:
-        clips = [i for i, s in enumerate(tf.splits) if s == split]
-        if not clips:
-            raise GPTError(f"{tokens}: no clip in split {split!r} (splits: {sorted(set(tf.splits))})")
-        seqs = [torch.from_numpy(tf.indices(i)[:, 0].astype(np.int64)) for i in clips]
-        caps = [[c[0] for c in tf.captions(i)] for i in clips]
-    texts = sorted({t for cs in caps for t in cs})
-    row = {t: k for k, t in enumerate(texts)}
-    pairs = [(k, row[t]) for k, cs in enumerate(caps) for t in cs]
-    if not pairs:
-        raise GPTError(f"{tokens}: the {split} clips have no captions")
-    lengths = torch.tensor([len(s) for s in seqs])
-    starts = torch.cat([torch.zeros(1, dtype=torch.long), lengths.cumsum(0)[:-1]])
-    emb = torch.from_numpy(cache.embed(texts, encoder))
-    return CodeData(torch.cat(seqs), starts, lengths, torch.tensor([p[0] for p in pairs]),
-                    torch.tensor([p[1] for p in pairs]), emb)
-
-
-def corrupt(codes: torch.Tensor, valid: torch.Tensor, tau: torch.Tensor, codebook_size: int,
-            gen: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Replace each valid code with probability ``tau`` (per row, ``(B,)``) by a different random
-    code; returns the corrupted codes and the boolean mask of replaced positions."""
-    hit = (torch.rand(codes.shape, generator=gen) < tau[:, None]) & valid
-    shift = torch.randint(1, codebook_size, codes.shape, generator=gen) if codebook_size > 1 else 0
-    return torch.where(hit, (codes + shift) % codebook_size, codes), hit
-
-
-def make_batch(seqs: list[torch.Tensor], ends: list[bool], end_id: int, pad_id: int):
-    """Inputs ``(B, n)`` padded with Pad and targets ``(B, n + 1)``: codes, End (when the clip
-    ends there), ignore past it. Position i of the model's output scores target i."""
-    n = max(len(s) for s in seqs)
-    inp = torch.full((len(seqs), n), pad_id, dtype=torch.long)
-    tgt = torch.full((len(seqs), n + 1), IGNORE, dtype=torch.long)
-    for b, (s, e) in enumerate(zip(seqs, ends)):
-        inp[b, :len(s)] = s
-        tgt[b, :len(s)] = s
-        if e:
-            tgt[b, len(s)] = end_id
-    return inp, tgt
-
-
-class SequenceSampler:
-    """Random (clip, caption) pairs, cropped to ``max_codes``; own generator per rank."""
-
-    def __init__(self, data: CodeData, batch: int, max_codes: int, seed: int, rank: int):
-        self.data, self.batch, self.max_codes = data, batch, max_codes
-        self.gen = torch.Generator().manual_seed(seed * 1_000_003 + 7919 * (rank + 1))
-
-    def sample(self):
-        d, g = self.data, self.gen
-        pick = torch.randint(len(d.pair_clip), (self.batch,), generator=g)
-        clips = d.pair_clip[pick]
-        seqs, ends = [], []
-        for c in clips.tolist():
-            L, s0 = int(d.lengths[c]), int(d.starts[c])
-            off = int(torch.randint(L - self.max_codes + 1, (1,), generator=g)) if L > self.max_codes else 0
-            n = min(L, self.max_codes)
-            seqs.append(d.codes[s0 + off:s0 + off + n])
-            ends.append(off + n == L)
-        return d.text[d.pair_text[pick]], seqs, ends
 
 
 def gpt_loss(logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -166,6 +92,30 @@ def gpt_loss(logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, 
 
 # --------------------------------------------------------------------------- config & bundle
 
+def check_augmentation(cfg: TrainConfig) -> None:
+    """Clear errors naming the field, before any work."""
+    for name in ("caption_dropout", "word_dropout"):
+        if not (0.0 <= getattr(cfg, name) < 1.0):
+            raise ConfigError(f"{name} {getattr(cfg, name)} must be in [0, 1)")
+    for name in ("recombine", "word_dropout_variants"):
+        if getattr(cfg, name) < 0:
+            raise ConfigError(f"{name} {getattr(cfg, name)} must be >= 0")
+    if cfg.snap < 0:
+        raise ConfigError(f"snap {cfg.snap} must be >= 0 (0 = off)")
+    if cfg.text_noise < 0:
+        raise ConfigError(f"text_noise {cfg.text_noise} must be >= 0")
+    if cfg.holdout not in HOLDOUTS:
+        raise ConfigError(f"holdout {cfg.holdout!r}: choose from {list(HOLDOUTS)}")
+    from motok.text.encoders import TokenFeatures
+    if cfg.model.text_tokens not in (0, TokenFeatures.length) or \
+            cfg.text_encoder.endswith("_tokens") != (cfg.model.text_tokens > 0):
+        raise ConfigError(f"model.text_tokens {cfg.model.text_tokens} and text_encoder {cfg.text_encoder!r}: "
+                          f"token-level conditioning needs both (a *_tokens encoder and text_tokens: "
+                          f"{TokenFeatures.length}), or neither")
+    if cfg.guidance != 1.0 and cfg.caption_dropout <= 0:
+        raise ConfigError(f"guidance {cfg.guidance} needs caption_dropout > 0 (the null text it guides against)")
+
+
 def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: bool = False) -> TrainConfig:
     """Recipe + overrides; on resume the saved config is the base and the model cannot change."""
     if not resume:
@@ -175,7 +125,8 @@ def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: b
     cfg = load_config(TrainConfig, None, overrides, base=saved)
     if recipe is not None and to_dict(load_config(TrainConfig, recipe, overrides))["model"] != saved["model"]:
         raise ConfigError(f"--resume: the recipe changes the model of the saved run {run}")
-    for k in ("model", "batch_size", "seed", "text_encoder"):
+    for k in ("model", "batch_size", "seed", "text_encoder", "holdout", "recombine", "word_dropout",
+              "word_dropout_variants", "caption_dropout"):
         if to_dict(cfg)[k] != saved[k]:
             raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
     return cfg
@@ -183,7 +134,9 @@ def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: b
 
 def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> MotionGPT:
     cfg = cfg if isinstance(cfg, TrainConfig) else from_dict(TrainConfig, cfg)
-    return MotionGPT(cfg.model, codebook_size, text_dim)
+    model = MotionGPT(cfg.model, codebook_size, text_dim, null_text=cfg.caption_dropout > 0)
+    model.default_guidance = float(cfg.guidance)
+    return model
 
 
 def load_gpt(run: str | Path, device: str | torch.device = "cpu") -> tuple[MotionGPT, dict]:
@@ -239,6 +192,7 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
         raise GPTError(f"batch_size {cfg.batch_size} does not split over {d.world} ranks")
     if not (0.0 <= cfg.tau <= 1.0):
         raise ConfigError(f"tau {cfg.tau} must be in [0, 1]")
+    check_augmentation(cfg)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     device = pick_device(cfg.device, d, GPTError)
@@ -305,7 +259,11 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
             else:
                 tau = torch.full((len(seqs),), cfg.tau)
             inp, hit = corrupt(inp, inp != model.pad_id, tau, K, sampler.gen)
-            loss, parts = gpt_loss(net(text.to(device), inp.to(device)), tgt.to(device))
+            text = noisy(text, cfg.text_noise, sampler.gen)
+            drop = None
+            if cfg.caption_dropout > 0:
+                drop = (torch.rand(len(seqs), generator=sampler.gen) < cfg.caption_dropout).to(device)
+            loss, parts = gpt_loss(net(text.to(device), inp.to(device), drop_text=drop), tgt.to(device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.optim.grad_clip > 0:
@@ -342,7 +300,7 @@ def _load(tokens: Path, cfg: TrainConfig, cache_path: Path, write: bool = True):
     cache = TextEmbeddingCache(cache_path)
     if not write:
         cache.path = None  # read-only on non-zero ranks
-    data = load_code_data(tokens, cfg.split, cfg.text_encoder, cache)
+    data = load_code_data(tokens, cfg.split, cfg.text_encoder, cache, cfg)
     val = None
     if cfg.val_split:
         try:

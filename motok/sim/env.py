@@ -43,9 +43,26 @@ class SimConfig:
     num_envs: int = 16
     control_hz: float | None = None  # None: the humanoid's (30 Hz by default)
     nthread: int = 2
-    stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available
+    stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available (backend mujoco)
+    backend: str = "mujoco"  # or "warp": MuJoCo Warp (pip install motok[gpu]), the same MJCF batched on a device
+    device: str = "cpu"  # the physics device; "cuda" (or "cuda:1") needs backend warp
     nan_actions: str = "raise"  # or "terminate": that env holds its pose and is reported invalid
     groups: int = 1  # environment groups a collector steps in turn, each while the policy runs on another
+
+    def portable(self) -> "SimConfig":
+        """C MuJoCo on the CPU, whatever backend and device the config says: how a loaded run's
+        config starts (where a run was trained is no default for where it is used, e.g. a GPU run
+        evaluated on a laptop; an evaluation's ``--device`` then chooses)."""
+        self.backend, self.device = "mujoco", "cpu"
+        return self
+
+    def on(self, device: str | None) -> "SimConfig":
+        """The physics on ``device`` (an evaluation's ``--device``; None keeps the run's): a GPU means
+        MuJoCo Warp, since C MuJoCo runs on the CPU only."""
+        if device is not None:
+            self.device = device
+            self.backend = "warp" if device != "cpu" else self.backend
+        return self
 
 
 class HumanoidEnv:
@@ -62,7 +79,8 @@ class HumanoidEnv:
         self.substeps = max(1, int(round(self.dt / m.opt.timestep)))
         self.num_envs = c.num_envs
         self.nq, self.nv = self.hum.nq, self.hum.nv  # the humanoid's part of the state (all of it, for a plain model)
-        self.stepper = stepper or make_stepper(c.stepper, self.hum, c.num_envs, self.substeps, c.nthread)
+        self.stepper = stepper or make_stepper(c.stepper, self.hum, c.num_envs, self.substeps, c.nthread,
+                                               c.backend, c.device)
         self.hinge_adr = self.hum.hinge_qpos_adr
         self.ctrl_low, self.ctrl_high = m.actuator_ctrlrange[:, 0].copy(), m.actuator_ctrlrange[:, 1].copy()
         # MuJoCo's position actuator: tau = kp (ctrl - q) - kv qd, so ctrl = q* + (kv / kp) qd* gives

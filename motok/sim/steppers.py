@@ -3,8 +3,9 @@ for a few substeps and report the ones that diverged, give body states.
 
 :class:`BatchStepper` (the default) runs MuJoCo >= 4.0's ``mujoco.batch`` thread pool, which also
 computes the body kinematics natively; :class:`RolloutStepper` runs ``mujoco.rollout`` (C++
-threads, GIL released) with numpy forward kinematics. A GPU batch simulator (MuJoCo Warp) is a
-third implementation of the same three methods (docs/sim.md).
+threads, GIL released) with numpy forward kinematics. The third implementation,
+:class:`motok.sim.warp_stepper.WarpStepper`, runs MuJoCo Warp on a GPU (or slowly on the CPU), chosen
+by ``backend="warp"`` (``env.backend: warp`` in a recipe; docs/sim.md).
 """
 
 from __future__ import annotations
@@ -166,7 +167,17 @@ class BatchStepper:
                       quat=self._xquat[e, self._ids].copy())
 
 
-def make_stepper(kind: str, hum: Humanoid, num_envs: int, substeps: int, nthread: int) -> Stepper:
+def make_stepper(kind: str, hum: Humanoid, num_envs: int, substeps: int, nthread: int, backend: str = "mujoco",
+                 device: str = "cpu") -> Stepper:
+    """``backend`` ``mujoco`` (C MuJoCo on the CPU; ``kind`` picks batch or rollout) or ``warp``
+    (MuJoCo Warp on ``device``; ``kind`` and ``nthread`` do not apply)."""
+    if backend == "warp":
+        from motok.sim.warp_stepper import WarpStepper  # optional dependency: imported only when asked for
+        return WarpStepper(hum, num_envs, substeps, device=device)
+    if backend != "mujoco":
+        raise UserError(f"unknown backend {backend!r}: use mujoco or warp")
+    if device != "cpu":
+        raise UserError(f"device {device!r} needs backend 'warp' (--set env.backend=warp): C MuJoCo runs on the CPU")
     if kind == "auto":
         try:
             import mujoco.batch  # noqa: F401  (MuJoCo >= 4.0)

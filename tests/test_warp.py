@@ -1,0 +1,250 @@
+"""The MuJoCo Warp stepper (motok/sim/warp_stepper.py) on Warp's CPU device, against the MuJoCo
+stepper from the same states and controls: standing, PD tracking of walks, resets, divergence,
+NaN containment, and a short expert training through ``env.backend: warp``.
+
+MuJoCo Warp is optional (``pip install motok[gpu]``); without it every test here but the one
+that checks the error message is skipped. The first run compiles Warp's kernels for the CPU (about
+a minute, cached in Warp's kernel cache for the next runs)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from motok.errors import UserError
+from motok.sim.env import HumanoidEnv, SimConfig
+from motok.sim.steppers import make_stepper
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def warp():
+    pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed (pip install 'motok[gpu]')")
+    return "warp"
+
+
+def pair(hum, n):
+    """A MuJoCo (batch) and a Warp stepper of ``n`` environments."""
+    return make_stepper("batch", hum, n, hum.substeps, 1), make_stepper("auto", hum, n, hum.substeps, 1, backend="warp")
+
+
+def tracking_targets(hum, lib, rows):
+    """Plain PD tracking with the velocity lead (action base ``reference``, zero residual)."""
+    m = hum.model
+    lead = -m.actuator_biasprm[:, 2] / m.actuator_gainprm[:, 0]
+    q = lib.qpos[rows][:, hum.hinge_qpos_adr] + lead * lib.qvel[rows][:, m.jnt_dofadr[m.actuator_trnid[:, 0]]]
+    return np.clip(q, m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1])
+
+
+def test_standing_agrees_with_mujoco(hum, warp):
+    """The rest pose held by PD targets 0 for 30 control steps (1 s): float32 against float64
+    agree to micrometres (measured 3 um), since nothing chaotic happens; 0.5 mm is the bound."""
+    a, w = pair(hum, 2)
+    ctrl = np.zeros((2, hum.model.nu))
+    for t in range(30):
+        assert not a.step(ctrl).any() and not w.step(ctrl).any()
+        ba, bw = a.bodies(), w.bodies()
+        assert np.abs(ba.pos - bw.pos).max() < 5e-4, t
+    assert np.abs(ba.vel - bw.vel).max() < 5e-3 and np.abs(ba.rot - bw.rot).max() < 1e-3
+    assert np.abs(a.qpos - w.qpos).max() < 1e-3 and w.overflows == 0
+
+
+def test_walk_tracking_agrees_with_mujoco(hum, lib, warp):
+    """PD tracking from frame 0 of every walk clip for 30 control steps (1 s; the character falls
+    after about 0.4 s, docs/sim.md). The two engines agree to float32 round-off (micrometres) until
+    a contact event that float32 and the two collision codes decide differently: MuJoCo's box-box
+    collider returns up to 8 points where MJWarp's convex one returns fewer (a foot stepping on the
+    other foot's toes: 5 against 2), and a contact that appears a substep earlier in one engine.
+    From then on the difference grows as chaotically as between two timesteps (docs/sim.md).
+    Stated bounds (measured on the 24 walks: 23 below 1 mm for 10 steps, the median of the largest
+    body difference 0.2 mm at step 30): for the first 10 steps (0.33 s, before the falls) the mean
+    body difference is below 1 mm in three clips of four and below 5 cm in all; over the 30 steps
+    the median over clips of the largest body difference stays below 5 mm. Float32 itself costs
+    about 1e-7 relative (0.1 um on a 1 m position) per operation; the bounds are set by the
+    contact events above, not by round-off."""
+    n = len(lib.names)
+    rows = lib.frame_index(np.arange(n), np.zeros(n, dtype=int))
+    a, w = pair(hum, n)
+    ids = np.arange(n)
+    for s in (a, w):
+        s.set_state(ids, lib.qpos[rows], lib.qvel[rows])
+    assert np.abs(a.bodies().pos - w.bodies().pos).max() < 1e-6  # float32 kinematics of the same state
+    worst = np.zeros((30, n))
+    mean = np.zeros((30, n))
+    for t in range(30):
+        ctrl = tracking_targets(hum, lib, lib.frame_index(ids, np.full(n, t + 1)))
+        assert not a.step(ctrl).any() and not w.step(ctrl).any()
+        err = np.linalg.norm(a.bodies().pos - w.bodies().pos, axis=-1)
+        worst[t], mean[t] = err.max(1), err.mean(1)
+    print("median over clips of the largest body difference (mm) per step:", np.round(np.median(worst, 1) * 1e3, 3))
+    print("clips with mean < 1 mm over the first 10 steps:", (mean[:10].max(0) < 1e-3).sum(), "of", n)
+    assert (mean[:10].max(0) < 1e-3).mean() >= 0.75 and mean[:10].max() < 0.05
+    assert np.median(worst, 1).max() < 5e-3 and w.overflows == 0
+
+
+def test_resets_divergence_and_nans_behave_as_with_mujoco(hum, lib, warp):
+    """set_state of a subset leaves the others alone and gives the same body states as MuJoCo;
+    a blown-up world is reported diverged by both and comes back at qpos0, the others stepping as
+    if nothing happened; a NaN state is reset by both."""
+    g = np.array([10, 500, 2000, 3000])
+    a, w = pair(hum, 4)
+    for s in (a, w):
+        s.set_state(np.arange(4), lib.qpos[g], lib.qvel[g])
+    ctrl = tracking_targets(hum, lib, g + 1)
+    a.step(ctrl), w.step(ctrl)
+    kept = w.qpos[[0, 2, 3]].copy()
+    for s in (a, w):  # a reset of one environment
+        s.set_state([1], lib.qpos[g[1] + 7:g[1] + 8], lib.qvel[g[1] + 7:g[1] + 8])
+    assert np.array_equal(w.qpos[[0, 2, 3]], kept) and np.abs(w.qpos[1] - lib.qpos[g[1] + 7]).max() < 1e-6
+    ba, bw = a.bodies([1]), w.bodies([1])
+    assert np.abs(ba.pos - bw.pos).max() < 1e-5 and np.abs(ba.vel - bw.vel).max() < 1e-4
+    assert np.abs(w.bodies().pos[[0, 2, 3]] - w.bodies([0, 2, 3]).pos).max() == 0.0
+    # Worlds spun at 1e6 and 1e9 rad/s: both engines blow up in the first substep, reset the world
+    # to qpos0 at rest and report it; the healthy worlds step as they would without them.
+    v = lib.qvel[g[:2]].copy()
+    v[:, 10] = [1e6, 1e9]
+    for s in (a, w):
+        s.set_state([2, 3], lib.qpos[g[:2]], v)
+    ref = make_stepper("auto", hum, 4, hum.substeps, 1, backend="warp")  # the same worlds without the bad two
+    ref.set_state(np.arange(4), w.qpos, w.qvel)
+    ref.set_state([2, 3], lib.qpos[g[:2]], lib.qvel[g[:2]])
+    da, dw, dr = a.step(ctrl), w.step(ctrl), ref.step(ctrl)
+    assert da.tolist() == dw.tolist() == [False, False, True, True] and not dr.any()
+    assert np.isfinite(w.qpos).all() and np.abs(w.qpos[2:, :3] - hum.model.qpos0[:3]).max() < 0.01  # root at rest
+    # the same restart at rest and unactuated; C MuJoCo resets before integrating its first substep,
+    # Warp after it, so Warp's reset worlds run one substep less (4 mm on a hinge, 0.1 mm at the root)
+    assert np.abs(a.qpos[2:] - w.qpos[2:]).max() < 1e-2 and np.abs(a.qpos[2:, :3] - w.qpos[2:, :3]).max() < 1e-3
+    assert np.abs(w.qpos[:2] - ref.qpos[:2]).max() < 1e-5  # the healthy worlds stepped as without them
+    # A NaN state (a caller's bug): mujoco.batch resets it to qpos0 in set_state without a report; so does Warp.
+    q = lib.qpos[g[:1]].copy()
+    q[0, 9] = np.nan
+    for s in (a, w):
+        s.set_state([3], q, lib.qvel[g[:1]])
+    assert np.isfinite(w.qpos).all() and np.abs(w.qpos[3] - a.qpos[3]).max() < 1e-6
+    da, dw = a.step(ctrl), w.step(ctrl)
+    assert not da.any() and not dw.any() and np.abs(a.qpos[3] - w.qpos[3]).max() < 1e-3
+    assert not w.step(ctrl)[2:].any()  # the reset worlds step normally again
+
+
+def test_env_backend_selection_and_nan_actions(hum, lib, warp):
+    env = HumanoidEnv(hum, SimConfig(num_envs=3, backend="warp", nan_actions="terminate"))
+    assert type(env.stepper).__name__ == "WarpStepper" and env.obs_dim == 102
+    ref = HumanoidEnv(hum, SimConfig(num_envs=3, backend="warp"))
+    g = np.array([10, 500, 2000])
+    for e in (env, ref):
+        e.set_state(np.arange(3), lib.qpos[g], lib.qvel[g])
+    bad = lib.qpos[g + 1][:, env.hinge_adr].copy()
+    held = env.qpos[2, env.hinge_adr].copy()
+    good = bad.copy()
+    bad[2, 0] = np.nan
+    diverged, invalid = env.step(bad)
+    ref.step(good)
+    assert invalid.tolist() == [False, False, True] and not diverged.any() and np.isfinite(env.qpos).all()
+    assert np.abs(env.qpos[2, env.hinge_adr] - held).max() < 0.2  # held its pose
+    assert np.abs(env.observation()[:2] - ref.observation()[:2]).max() < 1e-5  # the others as without it
+    with pytest.raises(ValueError, match="non-finite"):
+        HumanoidEnv(hum, SimConfig(num_envs=3, backend="warp")).step(bad)
+    with pytest.raises(UserError, match="device 'cuda'"):  # no GPU here
+        HumanoidEnv(hum, SimConfig(num_envs=1, backend="warp", device="cuda"))
+
+
+def test_the_on_device_path_steps_and_observes_without_the_host(hum, lib, warp):
+    """step_tensor takes and returns device tensors; the torch Eq. 7 of bodies_tensor() equals the
+    numpy observation of the same state (float32 arithmetic against float64: 1e-5)."""
+    import torch
+
+    from motok.sim.obs import observation
+    from motok.sim.obs_torch import observation as observation_t
+
+    g = np.array([10, 500, 2000])
+    w = make_stepper("auto", hum, 3, hum.substeps, 1, backend="warp")
+    w.set_state(np.arange(3), lib.qpos[g], lib.qvel[g])
+    ctrl = torch.as_tensor(tracking_targets(hum, lib, g + 1), dtype=torch.float32)
+    bad = w.step_tensor(ctrl)
+    assert isinstance(bad, torch.Tensor) and bad.dtype == torch.bool and not bad.any()
+    ee = list(hum.skeleton.end_effectors)
+    b = w.bodies_tensor()
+    assert b.pos.dtype == torch.float32 and b.rot.shape == (3, len(hum.body_ids), 3, 3)
+    mine = observation_t(w.qpos_t, w.qvel_t, b, ee)
+    w._sync()  # the host mirrors, for the numpy reference only
+    ref = observation(w.qpos, w.qvel, w.bodies(), ee)
+    assert mine.shape == ref.shape == (3, 102) and np.abs(mine.numpy() - ref).max() < 1e-5
+
+
+def test_backend_errors_name_the_fix(hum, monkeypatch):
+    """Runs with or without MuJoCo Warp: C MuJoCo refuses a GPU device, unknown backends are named,
+    and a missing MuJoCo Warp says what to install."""
+    with pytest.raises(UserError, match="needs backend 'warp'"):
+        HumanoidEnv(hum, SimConfig(num_envs=1, device="cuda"))
+    with pytest.raises(UserError, match="unknown backend 'jax'"):
+        HumanoidEnv(hum, SimConfig(num_envs=1, backend="jax"))
+    monkeypatch.setitem(sys.modules, "mujoco_warp", None)  # as on a CPU-only install
+    with pytest.raises(UserError, match=r"motok\[gpu\]"):
+        HumanoidEnv(hum, SimConfig(num_envs=1, backend="warp"))
+
+
+def test_expert_trains_through_the_warp_backend(hum, lib, small_dataset, tmp_path, warp):
+    """Two PPO + AMP iterations of 4 environments on Warp's CPU device, then an evaluation through
+    Warp: the recipe key reaches the stepper and is kept in the checkpoint, and a loaded run starts
+    from C MuJoCo on the CPU whatever it was trained on (its evaluation's --device chooses)."""
+    from motok.control.expert import ExpertConfig, evaluate_run, train
+
+    cfg = ExpertConfig(seed=0, iterations=2, save_every=1000)
+    cfg.env.num_envs, cfg.env.nthread, cfg.env.backend = 4, 1, "warp"
+    cfg.ppo.horizon, cfg.ppo.minibatch_size = 8, 32
+    cfg.net.encoder = cfg.net.decoder = cfg.net.value = [16]
+    cfg.net.latent_dim = 8
+    cfg.amp.hidden, cfg.amp.batch_size, cfg.amp.updates = [16], 32, 1
+    cfg.action.base, cfg.task.termination = "reference", "mean"
+    cfg.eval_per_group = 0
+    out = train(cfg, tmp_path / "run", hum, lib, data=small_dataset)
+    assert out["iterations"] == 2 and out["samples"] == 2 * 4 * 8
+    meta = json.loads((tmp_path / "run" / "bundle.json").read_text())
+    assert meta["config"]["env"]["backend"] == "warp" and meta["config"]["env"]["device"] == "cpu"
+    rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["r_im"]) and 0.0 < r["r_im"] <= 1.0 for r in rows)
+    from motok.control.evaluate import evaluate
+    from motok.control.expert import load_expert
+
+    loaded, _, ac, _ = load_expert(tmp_path / "run")
+    assert (loaded.env.backend, loaded.env.device) == ("mujoco", "cpu")  # a loaded run: C MuJoCo unless told
+    sim = replace(loaded.env, backend="warp", num_envs=2)
+    res = evaluate(hum, ac, lib, sim, cfg.task, cfg.action, clips=np.array([0, 1]))
+    assert res["overall"]["clips"] == 2 and all(v["seconds"] > 0 for v in res["clips"].values())
+    res = evaluate_run(tmp_path / "run", clips="dataset-2_walk_normal_00[12]", device="cpu")  # C MuJoCo
+    assert res["overall"]["clips"] == 2
+
+
+def test_device_option_of_the_commands(small_dataset, hum, tmp_path, monkeypatch):
+    """``--device`` on training and evaluation: cuda means MuJoCo Warp, refused here (no GPU, or no
+    MuJoCo Warp) with the reason; anything else is named; cpu with env.backend=warp trains through
+    it (when installed) and the run's eval takes it too."""
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+
+    monkeypatch.setenv("MOTOK_CACHE", str(tmp_path / "cache"))
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("iterations: 1\nenv: {num_envs: 2, nthread: 1}\nppo: {horizon: 4, minibatch_size: 8}\n"
+                      "net: {encoder: [8], decoder: [8], value: [8], latent_dim: 4}\namp: {enabled: false}\n"
+                      "eval_per_group: 0\n")
+    base = ["--quiet", "control", "expert", "train", "--data", str(small_dataset), "--clips",
+            "dataset-2_walk_normal_00[12]", "--recipe", str(recipe), "--humanoid", str(hum.path)]
+    runner = CliRunner()
+    r = runner.invoke(app, base + ["-o", str(tmp_path / "gpu"), "--device", "cuda"])
+    assert r.exit_code == 2 and ("no CUDA driver" in r.output or "motok[gpu]" in r.output), r.output
+    r = runner.invoke(app, base + ["-o", str(tmp_path / "tpu"), "--device", "tpu"])
+    assert r.exit_code == 2 and "use cpu or cuda" in r.output, r.output
+    pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed (pip install 'motok[gpu]')")
+    run = tmp_path / "run"
+    r = runner.invoke(app, base + ["-o", str(run), "--device", "cpu", "--set", "env.backend=warp", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((run / "bundle.json").read_text())["config"]["env"]["backend"] == "warp"
+    r = runner.invoke(app, ["--quiet", "control", "expert", "eval", "--expert", str(run), "--clips",
+                            "dataset-2_walk_normal_001", "--device", "cpu", "--json"])
+    assert r.exit_code == 0 and json.loads(r.output)["overall"]["clips"] == 1, r.output

@@ -1,5 +1,5 @@
 # make demo: install into .venv and run the main job end to end on the default data
-#            (preprocess, tokenizer, GPT, text -> motion; about ten minutes on 2 CPU cores).
+#            (preprocess, tokenizer, GPT, text -> motion; about 13 minutes on 2 CPU cores, of which ~2 embed the captions with mpnet once; 370 MB caption cache).
 # make test: install the same way and run the test suite.
 # make demo-physics: the physics half at toy size (about 17 minutes on 2 CPU cores; see the target).
 PYTHON ?= python3

@@ -15,6 +15,12 @@ from motok.sim.reference import ReferenceLibrary
 RESET_CLEARANCE = 0.002  # m: a reference pose whose geometry dips below the floor is lifted to this height
 
 
+def check_rate(lib: ReferenceLibrary, control_hz: float) -> None:
+    """A reference task steps one reference frame per control step, so the two rates must agree."""
+    if abs(lib.fps - control_hz) > 1e-6:
+        raise UserError(f"the reference library is at {lib.fps:g} Hz but the control rate is {control_hz:g} Hz")
+
+
 def reference_state(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(qpos, qvel)`` of the reference at ``clips``/``frames``, lifted clear of the floor."""
     g = lib.starts[clips] + frames

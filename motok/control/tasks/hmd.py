@@ -21,7 +21,8 @@ import numpy as np
 
 from motok.control.mdp.head import HEAD_FEATURES, HeadRewardConfig, head_distance, head_errors, head_goal, \
     head_lost, head_reward
-from motok.control.mdp.resets import check_start_frames, given_starts, reference_bodies, reference_state, sample_starts
+from motok.control.mdp.resets import (check_rate, check_start_frames, given_starts, reference_bodies, reference_state,
+                                      sample_starts)
 from motok.control.mdp.terminations import body_distances, end_of_step
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
@@ -52,8 +53,7 @@ class HMDTask:
     reward_key = "r_task"
 
     def __init__(self, cfg: HMDTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
-        if abs(lib.fps - env.control_hz) > 1e-6:
-            raise UserError(f"the reference library is at {lib.fps:g} Hz but the control rate is {env.control_hz:g} Hz")
+        check_rate(lib, env.control_hz)
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
         N = env.num_envs
         self.max_steps = max(1, int(round(cfg.episode_seconds * env.control_hz)))

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motok.control.mdp.observations import imitation_goal
-from motok.control.mdp.resets import check_start_frames, given_starts, reference_bodies, reference_state, sample_starts
+from motok.control.mdp.resets import (check_rate, check_start_frames, given_starts, reference_bodies, reference_state,
+                                      sample_starts)
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
 from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
 from motok.errors import UserError
@@ -46,8 +47,7 @@ class ImitationTask:
     reward_key = "r_im"
 
     def __init__(self, cfg: ImitationTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
-        if abs(lib.fps - env.control_hz) > 1e-6:
-            raise UserError(f"the reference library is at {lib.fps:g} Hz but the control rate is {env.control_hz:g} Hz")
+        check_rate(lib, env.control_hz)
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
         N = env.num_envs
         self.max_steps = max(1, int(round(cfg.max_episode_seconds * env.control_hz)))

@@ -33,7 +33,7 @@ from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfi
                                          check_keyframes, inbetween_errors, inbetween_reward,
                                          keyframe_goal, next_keyframe, sample_keyframes,
                                          time_encoding)
-from motok.control.mdp.resets import given_starts, reference_bodies, reference_state, sample_starts
+from motok.control.mdp.resets import check_rate, given_starts, reference_bodies, reference_state, sample_starts
 from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
@@ -83,8 +83,7 @@ class InbetweenTask:
     reward_key = "r_task"
 
     def __init__(self, cfg: InbetweenTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
-        if abs(lib.fps - env.control_hz) > 1e-6:
-            raise UserError(f"the reference library is at {lib.fps:g} Hz but the control rate is {env.control_hz:g} Hz")
+        check_rate(lib, env.control_hz)
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
         N = env.num_envs
         self.window = max(2, int(round(cfg.window_seconds * env.control_hz)))

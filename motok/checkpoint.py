@@ -51,11 +51,14 @@ def register_kind(kind: str, versions: tuple[int, ...] = (1,)) -> None:
 
 
 def rng_state() -> dict[str, Any]:
-    return {
+    st = {
         "torch": torch.get_rng_state(),
         "numpy": torch.from_numpy(np.frombuffer(json.dumps(_np_state()).encode(), dtype=np.uint8).copy()),
         "python": torch.from_numpy(np.frombuffer(json.dumps(_py_state()).encode(), dtype=np.uint8).copy()),
     }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():  # a rollout on the GPU draws its noise there
+        st["cuda"] = torch.stack(torch.cuda.get_rng_state_all())
+    return st
 
 
 def _np_state():
@@ -70,6 +73,8 @@ def _py_state():
 
 def set_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(list(state["cuda"]))
     s = json.loads(bytes(state["numpy"].numpy()).decode())
     np.random.set_state((s[0], np.array(s[1], dtype=np.uint32), s[2], s[3], s[4]))
     v, st, g = json.loads(bytes(state["python"].numpy()).decode())
@@ -167,7 +172,7 @@ def load_bundle(run: str | Path, kind: str | None = None, with_train_state: bool
         if not p.exists():
             raise CheckpointError(f"{run}: no train_state.pt to resume from")
         try:
-            train_state = torch.load(p, weights_only=True)
+            train_state = torch.load(p, weights_only=True, map_location="cpu")  # a GPU run resumes or loads anywhere
         except Exception as e:  # pickle, zip and torch errors alike mean a damaged file here
             raise CheckpointError(f"{p}: unreadable training state, the file is truncated or corrupted "
                                   f"({type(e).__name__}: {e})") from None

@@ -154,12 +154,12 @@ def test_env_backend_selection_and_nan_actions(hum, lib, warp):
 
 
 def test_the_on_device_path_steps_and_observes_without_the_host(hum, lib, warp):
-    """step_tensor takes and returns device tensors; the torch Eq. 7 of bodies_tensor() equals the
-    numpy observation of the same state (float32 arithmetic against float64: 1e-5)."""
+    """step_tensor takes and returns device tensors; Eq. 7 (motok.sim.obs.observation, the same
+    function as on the host) of bodies_tensor() equals the numpy observation of the same state
+    (float32 arithmetic against float64: 1e-5)."""
     import torch
 
     from motok.sim.obs import observation
-    from motok.sim.obs_torch import observation as observation_t
 
     g = np.array([10, 500, 2000])
     w = make_stepper("auto", hum, 3, hum.substeps, 1, backend="warp")
@@ -170,10 +170,256 @@ def test_the_on_device_path_steps_and_observes_without_the_host(hum, lib, warp):
     ee = list(hum.skeleton.end_effectors)
     b = w.bodies_tensor()
     assert b.pos.dtype == torch.float32 and b.rot.shape == (3, len(hum.body_ids), 3, 3)
-    mine = observation_t(w.qpos_t, w.qvel_t, b, ee)
+    mine = observation(w.qpos_t, w.qvel_t, b, ee)
+    assert isinstance(mine, torch.Tensor)
     w._sync()  # the host mirrors, for the numpy reference only
     ref = observation(w.qpos, w.qvel, w.bodies(), ee)
     assert mine.shape == ref.shape == (3, 102) and np.abs(mine.numpy() - ref).max() < 1e-5
+
+
+def device_pair(hum, lib, n):
+    """The imitation MDP of ``n`` environments on Warp twice: host arrays, and on the device."""
+    from motok.control.expert import imitation_mdp
+    from motok.control.mdp.actions import ActionConfig
+    from motok.control.tasks.imitation import ImitationTaskConfig
+
+    tc, ac = ImitationTaskConfig(termination="mean"), ActionConfig(base="reference")
+    sim = SimConfig(num_envs=n, nthread=1, backend="warp")
+    return (imitation_mdp(hum, lib, sim, tc, ac, 0),
+            imitation_mdp(hum, lib, replace(sim, on_device=True), tc, ac, 0))
+
+
+def test_the_on_device_imitation_mdp_equals_the_host_one(hum, lib, warp):
+    """env.on_device: state, observation (Eq. 7), goal (Eq. 9), action map, reward (Eq. 10) and
+    termination computed in torch where the state lives give the host path's numbers from the same
+    starts and actions: the two differ by float32 against float64 arithmetic on the same float32
+    physics (measured 1e-5 after 20 steps; bounds 1e-3 and 1e-4), and the same steps end."""
+    import torch
+
+    host, dev = device_pair(hum, lib, 3)
+    starts = dict(clips=[0, 1, 2], frames=[0, 5, 30])
+    (oh, gh), (od, gd) = host.reset(**starts), dev.reset(**starts)
+    assert isinstance(od, torch.Tensor) and od.dtype == torch.float32 and np.abs(od.numpy() - oh).max() < 1e-5
+    rng = np.random.default_rng(0)
+    for t in range(20):
+        a = rng.normal(0.0, 0.05, (3, host.action_dim))
+        oh, gh, rh, th, trh, ih = host.step(a)
+        od, gd, rd, td, trd, id_ = dev.step(torch.as_tensor(a, dtype=torch.float32))
+        assert all(isinstance(x, torch.Tensor) for x in (od, gd, rd["r_im"], td, trd, id_["max_body_error"]))
+        assert np.abs(od.numpy() - oh).max() < 1e-3 and np.abs(gd.numpy() - gh).max() < 1e-3, t
+        assert np.abs(rd["r_im"].numpy() - rh["r_im"]).max() < 1e-4, t
+        assert np.array_equal(td.numpy(), th) and np.array_equal(trd.numpy(), trh), t
+        assert np.array_equal(id_["frame"].numpy(), ih["frame"])
+        if (th | trh).any():
+            break
+    assert t >= 5  # the comparison covered several steps of tracking
+
+
+def test_on_device_starts_are_drawn_on_the_device(hum, lib, warp):
+    """Random starts come from the task's torch.Generator: reproducible from its seed, every frame
+    leaves the goal's frames ahead, and difficulty probabilities (clip_p) are obeyed."""
+    import torch
+
+    _, dev = device_pair(hum, lib, 64)
+    dev.reset()
+    t = dev.task
+    first = (t.clip.clone(), t.frame.clone())
+    assert t.clip.device == t.frame.device == dev.env.qpos.device
+    L = t._host_lengths
+    c, f = t.clip.numpy(), t.frame.numpy()
+    assert (f >= 0).all() and (f + t.cfg.goal_frames + 2 <= L[c]).all() and len(set(c.tolist())) > 3
+    assert (t.limit.numpy() == np.minimum(t.max_steps, L[c] - 1 - f - t.cfg.goal_frames)).all()
+    _, again = device_pair(hum, lib, 64)
+    again.reset()
+    assert torch.equal(again.task.clip, first[0]) and torch.equal(again.task.frame, first[1])
+    p = np.zeros(len(lib))
+    p[3] = 1.0
+    t.clip_p = p
+    dev.reset(torch.arange(10))
+    assert (t.clip[:10] == 3).all() and torch.equal(t.clip[10:], first[0][10:])
+    obs = dev.env.observation()
+    assert torch.isfinite(obs).all() and obs.shape == (64, dev.obs_dim)
+
+
+def device_expert_cfg(iterations: int = 4):
+    from motok.control.expert import ExpertConfig
+
+    cfg = ExpertConfig(seed=0, iterations=iterations, save_every=2)
+    cfg.env.num_envs, cfg.env.nthread, cfg.env.backend, cfg.env.on_device = 4, 1, "warp", True
+    cfg.ppo.horizon, cfg.ppo.minibatch_size = 8, 32
+    cfg.net.encoder = cfg.net.decoder = cfg.net.value = [16]
+    cfg.net.latent_dim = 8
+    cfg.amp.hidden, cfg.amp.batch_size, cfg.amp.updates = [16], 32, 1
+    cfg.action.base, cfg.task.termination = "reference", "mean"
+    cfg.sampling.hard_fraction, cfg.sampling.every, cfg.sampling.eval_batch = 0.5, 2, 4
+    return cfg
+
+
+def metric_rows(run, keys):
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    return [[r.get(k) for k in keys] for r in rows]
+
+
+@pytest.fixture(scope="module")
+def device_expert(hum, lib, small_dataset, tmp_path_factory, warp):
+    """An expert trained 4 iterations with env.on_device (PPO + AMP, difficulty sampling)."""
+    from motok.control.expert import train
+
+    run = tmp_path_factory.mktemp("device-expert") / "a"
+    out = train(device_expert_cfg(), run, hum, lib, data=small_dataset)
+    assert out["iterations"] == 4 and out["samples"] == 4 * 4 * 8
+    return run
+
+
+def test_expert_trains_on_the_device_and_resumes_exactly(hum, lib, small_dataset, tmp_path, device_expert):
+    """PPO + AMP with env.on_device: rollout buffers, networks, AMP's replay and reference
+    transitions on the physics device (here Warp's CPU device); a run stopped at iteration 2 and
+    resumed logs the same metrics as an uninterrupted one (the task's torch.Generator, the
+    difficulty sampler and the replay buffer are saved with it)."""
+    from motok.control.expert import train
+
+    cfg = device_expert_cfg()
+    train(cfg, tmp_path / "b", hum, lib, data=small_dataset, until=2)
+    train(cfg, tmp_path / "b", hum, lib, data=small_dataset, resume=True)
+    keys = ("r_im", "r_style", "policy_loss", "disc_loss", "hard_clips", "episode_return")
+    rows = metric_rows(device_expert, keys)
+    assert rows == metric_rows(tmp_path / "b", keys)
+    assert all(np.isfinite(r[0]) and 0.0 <= r[0] <= 1.0 for r in rows)
+    assert rows[1][4] is not None  # the difficulty evaluation ran (on the host) at iteration 2
+
+
+def test_distillation_runs_on_the_device_and_resumes_exactly(hum, lib, tmp_path, device_expert):
+    """Online distillation (DAgger) of a hybrid prior with env.on_device: the student, the frozen
+    expert, the batch and the expert's labels on the physics device; resumed exactly; the bundle
+    loads on the host like any prior."""
+    from motok.control.distill import DistillConfig, load_prior, train
+    from motok.control.priors import PriorConfig
+
+    cfg = DistillConfig(seed=0, iterations=4, save_every=2, horizon=8, epochs=2, minibatch_size=32, action_noise=0.05)
+    cfg.env = replace(cfg.env, num_envs=4, nthread=1, backend="warp", on_device=True)
+    cfg.task.termination = "mean"
+    cfg.prior = PriorConfig(kind="hybrid", latent_dim=8, num_codebooks=2, codebook_size=16, posterior_hidden=[16],
+                            prior_hidden=[16], decoder_hidden=[16])
+    train(cfg, tmp_path / "a", device_expert, lib)
+    train(cfg, tmp_path / "b", device_expert, lib, until=2)
+    train(cfg, tmp_path / "b", device_expert, lib, resume=True)
+    keys = ("action_loss", "commit_loss", "mm_loss", "rollout_action_err", "code_usage", "r_im")
+    rows = metric_rows(tmp_path / "a", keys)
+    assert rows == metric_rows(tmp_path / "b", keys) and all(v is not None and np.isfinite(v) for v in rows[-1])
+    _, _, model, _ = load_prior(tmp_path / "b")
+    assert next(model.parameters()).device.type == "cpu"
+
+
+def host_and_device(hum, lib, task_cls, cfg, base: str, n: int = 3):
+    """A task's MDP on Warp twice, with residual PD targets on ``base``: host arrays, and on the device."""
+    import torch
+    from functools import partial
+
+    from motok.control.mdp.actions import ActionConfig, pd_targets
+    from motok.control.tasks.base import TaskEnv
+
+    out = []
+    for on in (False, True):
+        env = HumanoidEnv(hum, SimConfig(num_envs=n, nthread=1, backend="warp", on_device=on))
+        lb, rng = (lib.to("cpu"), torch.Generator().manual_seed(0)) if on else (lib, np.random.default_rng(0))
+        out.append(TaskEnv(env, task_cls(cfg, env, lb, rng), partial(pd_targets, ActionConfig(base))))
+    return out
+
+
+def test_on_device_navigation_equals_the_host_one(hum, lib, warp):
+    """The navigation task (Eq. 15 goal, Eq. 16 reward, head-fall test, target clock) on device
+    tensors gives the host numbers from the same starts, targets and actions; its target redraw
+    keeps the new target only where one is due, without reading the mask on the host."""
+    import torch
+
+    from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig
+
+    cfg = NavigationTaskConfig(retarget_seconds=0.4)  # 12 steps: the redraw happens within the test
+    host, dev = host_and_device(hum, lib, NavigationTask, cfg, "current")
+    for m in (host, dev):
+        m.reset(clips=[0, 1, 2], frames=[0, 10, 20])
+        m.task.set_targets([0, 1, 2], [[3.0, 0.0], [0.0, -4.0], [-2.0, 2.0]])
+    assert np.abs(dev.task.goal().numpy() - host.task.goal()).max() < 1e-5
+    rng = np.random.default_rng(1)
+    for t in range(11):  # before the first redraw: the same targets on both
+        a = rng.normal(0.0, 0.05, (3, host.action_dim))
+        _, gh, rh, th, trh, ih = host.step(a)
+        _, gd, rd, td, trd, id_ = dev.step(torch.as_tensor(a, dtype=torch.float32))
+        assert np.abs(gd.numpy() - gh).max() < 1e-3 and np.abs(rd["r_task"].numpy() - rh["r_task"]).max() < 1e-4
+        assert np.array_equal(td.numpy(), th) and np.array_equal(ih["target_ends"], id_["target_ends"].numpy())
+    before = dev.task.target.clone()
+    _, _, _, _, _, info = dev.step(torch.zeros(3, dev.action_dim))
+    due = info["target_ends"] & ~(info["fell"] | info["diverged"])
+    assert due.all() and not torch.equal(dev.task.target, before)  # every target was due: all redrawn
+    d = torch.linalg.norm(dev.task.target - dev.env.bodies.pos[:, 0, :2], dim=-1)
+    assert ((d >= cfg.min_distance - 1e-4) & (d <= cfg.max_distance + 1e-4)).all()
+    assert (dev.task.target_steps == 0).all() and (dev.task.target_index == 1).all()
+
+
+@pytest.mark.parametrize("name", ["inbetween", "hmd"])
+def test_on_device_reference_tasks_equal_the_host_ones(name, hum, lib, warp):
+    """In-betweening (Eq. 12-14: keyframe goal with the time encoding, the reference reward, the
+    keyframe clock) and head tracking (head goal, head reward, head-lost test) on device tensors
+    give the host numbers from the same starts, keyframes and actions; their random windows drawn
+    on the device are valid (keyframes increasing, min_gap apart, inside their clips)."""
+    import torch
+
+    from motok.control.tasks.hmd import HMDTask, HMDTaskConfig
+    from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
+
+    cls, cfg = (InbetweenTask, InbetweenTaskConfig(window_seconds=1.0, min_keyframe_gap_seconds=0.2)) \
+        if name == "inbetween" else (HMDTask, HMDTaskConfig(episode_seconds=1.0))
+    host, dev = host_and_device(hum, lib, cls, cfg, "reference")
+    given = dict(clips=[0, 1, 2], frames=[0, 10, 20])
+    if name == "inbetween":
+        given["keyframes"] = [[0, 8, 16, 29]] * 3
+    (_, gh), (_, gd) = host.reset(**given), dev.reset(**given)
+    assert isinstance(gd, torch.Tensor) and np.abs(gd.numpy() - gh).max() < 1e-4
+    rng = np.random.default_rng(1)
+    hits = 0
+    for t in range(12):
+        a = rng.normal(0.0, 0.05, (3, host.action_dim))
+        _, gh, rh, th, trh, ih = host.step(a)
+        _, gd, rd, td, trd, id_ = dev.step(torch.as_tensor(a, dtype=torch.float32))
+        assert np.abs(gd.numpy() - gh).max() < 1e-3 and np.abs(rd["r_task"].numpy() - rh["r_task"]).max() < 1e-4, t
+        assert np.array_equal(td.numpy(), th) and np.array_equal(trd.numpy(), trh), t
+        if name == "inbetween":
+            assert np.array_equal(id_["keyframe_index"].numpy(), ih["keyframe_index"]), t
+            hits += int((ih["keyframe_index"] == 1).sum())
+    if name == "inbetween":
+        assert hits == 3  # every window reached its keyframe at offset 8, on both paths
+    dev.reset(torch.arange(3))
+    task = dev.task
+    lengths = task._host_lengths[task.clip.numpy()]
+    if name == "inbetween":
+        k = task.keyframes.numpy() - task.start.numpy()[:, None]
+        assert (k[:, 0] == 0).all() and (k[:, -1] == task.window - 1).all() and (np.diff(k, 1) >= task.min_gap).all()
+        assert (task.keyframes.numpy()[:, -1] <= lengths - 1).all()
+    else:
+        assert (task.frame.numpy() + task.limit.numpy() + cfg.goal_frames <= lengths - 1).all()
+
+
+def test_task_learning_runs_on_the_device(hum, lib, small_dataset, tmp_path, warp):
+    """PPO over a frozen prior on the navigation task with env.on_device (the prior, the
+    high-level policy and the buffers on the physics device), resumed exactly; its evaluation
+    runs on host arrays."""
+    from tiny_runs import tiny_prior_bundle
+
+    from motok.control.task_train import TaskTrainConfig, train
+
+    prior = tiny_prior_bundle(tmp_path, hum, lib, small_dataset)
+    cfg = TaskTrainConfig(seed=0, iterations=4, save_every=2, eval_every=4, eval_episodes=2)
+    cfg.env = replace(cfg.env, num_envs=4, nthread=1, backend="warp", on_device=True)
+    cfg.ppo.horizon, cfg.ppo.minibatch_size, cfg.ppo.epochs = 8, 16, 2
+    cfg.net.policy = cfg.net.value = [16]
+    train(cfg, tmp_path / "a", prior, lib)
+    train(cfg, tmp_path / "b", prior, lib, until=2)
+    train(cfg, tmp_path / "b", prior, lib, resume=True)
+    keys = ("r_task", "policy_loss", "value_loss", "entropy", "episode_return")
+    rows = metric_rows(tmp_path / "a", keys)
+    assert rows == metric_rows(tmp_path / "b", keys) and all(np.isfinite(v) for v in rows[-1] if v is not None)
+    last = json.loads((tmp_path / "a" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert any(k.startswith("eval_") for k in last)
 
 
 def test_backend_errors_name_the_fix(hum, monkeypatch):
@@ -183,6 +429,10 @@ def test_backend_errors_name_the_fix(hum, monkeypatch):
         HumanoidEnv(hum, SimConfig(num_envs=1, device="cuda"))
     with pytest.raises(UserError, match="unknown backend 'jax'"):
         HumanoidEnv(hum, SimConfig(num_envs=1, backend="jax"))
+    # C MuJoCo's state is host memory: on_device leaves its rollout where it is.
+    env = HumanoidEnv(hum, SimConfig(num_envs=1, on_device=True))
+    assert not env.on_device and isinstance(env.observation(), np.ndarray)
+
     monkeypatch.setitem(sys.modules, "mujoco_warp", None)  # as on a CPU-only install
     with pytest.raises(UserError, match=r"motok\[gpu\]"):
         HumanoidEnv(hum, SimConfig(num_envs=1, backend="warp"))

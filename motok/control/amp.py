@@ -81,48 +81,54 @@ class Discriminator(nn.Module):
 class ReplayBuffer:
     """Fixed-size ring of policy transitions ``(s, s')``; state saved for exact resume."""
 
-    def __init__(self, capacity: int, obs_dim: int):
-        self.data = torch.zeros(capacity, 2, obs_dim)
+    def __init__(self, capacity: int, obs_dim: int, device=None):
+        self.data = torch.zeros(capacity, 2, obs_dim, device=device)
         self.pos, self.size = 0, 0
 
     def add(self, s: torch.Tensor, s2: torch.Tensor) -> None:
         cap, n = len(self.data), len(s)
         keep = slice(max(n - cap, 0), n)  # more than fits: only the newest survive, in ring order
-        self.data[(self.pos + torch.arange(n)[keep]) % cap] = torch.stack([s[keep], s2[keep]], 1)
+        rows = (self.pos + torch.arange(n, device=self.data.device)[keep]) % cap
+        self.data[rows] = torch.stack([s[keep], s2[keep]], 1)
         self.pos = int((self.pos + n) % cap)
         self.size = min(self.size + n, cap)
 
     def sample(self, n: int, rng: np.random.Generator) -> torch.Tensor:
-        return self.data[torch.from_numpy(rng.integers(0, self.size, n))]
+        return self.data[_rows(rng.integers(0, self.size, n), self.data)]
 
     def state(self) -> dict:
-        return {"data": self.data[:self.size].clone(), "pos": torch.tensor(self.pos)}
+        return {"data": self.data[:self.size].to("cpu", copy=True), "pos": torch.tensor(self.pos)}  # host: a checkpoint loads anywhere
 
     def load(self, st: dict) -> None:
         n = len(st["data"])
-        self.data[:n] = st["data"]
+        self.data[:n] = st["data"].to(self.data.device)
         self.pos, self.size = int(st["pos"]), n
+
+
+def _rows(idx: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """Host-drawn row indices (the seeded numpy generator decides the minibatches) on ``like``'s device."""
+    return torch.from_numpy(idx).to(like.device)
 
 
 class AMP:
     """Discriminator, its optimiser, the replay buffer and the reference transitions."""
 
-    def __init__(self, cfg: AMPConfig, ref_obs: np.ndarray, clip_starts: np.ndarray):
+    def __init__(self, cfg: AMPConfig, ref_obs: np.ndarray, clip_starts: np.ndarray, device=None):
         """``ref_obs (F, D)``: Eq. 7 observations of every library frame; ``clip_starts (C+1,)``
-        so that a transition never spans two clips."""
+        so that a transition never spans two clips; ``device``: where the rollout's transitions are."""
         self.cfg = cfg
-        self.ref = torch.as_tensor(ref_obs, dtype=torch.float32)
+        self.ref = torch.as_tensor(ref_obs, dtype=torch.float32, device=device)
         last = np.zeros(len(ref_obs), dtype=bool)
         last[np.asarray(clip_starts[1:]) - 1] = True
         self.ref_idx = np.flatnonzero(~last)  # frames with a successor in the same clip
-        self.disc = Discriminator(ref_obs.shape[1], tuple(cfg.hidden), cfg.activation)
+        self.disc = Discriminator(ref_obs.shape[1], tuple(cfg.hidden), cfg.activation).to(device)
         self.disc.mean.copy_(self.ref.mean(0))
         self.disc.std.copy_(self.ref.std(0).clamp_min(0.05))  # near-constant reference features must not blow up
         self.opt = torch.optim.Adam(self.disc.parameters(), lr=cfg.lr)
-        self.replay = ReplayBuffer(cfg.replay_size, ref_obs.shape[1])
+        self.replay = ReplayBuffer(cfg.replay_size, ref_obs.shape[1], device)
 
     def reference_batch(self, n: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        g = self.ref_idx[rng.integers(0, len(self.ref_idx), n)]
+        g = _rows(self.ref_idx[rng.integers(0, len(self.ref_idx), n)], self.ref)
         return self.ref[g], self.ref[g + 1]
 
     @torch.no_grad()
@@ -149,7 +155,7 @@ class AMP:
         stats: dict[str, float] = {}
         for _ in range(c.updates):
             n = c.batch_size
-            cur = torch.from_numpy(rng.integers(0, len(s), n))
+            cur = _rows(rng.integers(0, len(s), n), s)
             if self.replay.size:
                 k = n // 2
                 old = self.replay.sample(n - k, rng)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from motok.arrays import xp
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.networks import ActorCritic
 from motok.control.priors import LatentPrior, squared_norm
@@ -28,11 +29,12 @@ from motok.control.tasks.base import TaskEnv
 from motok.quantize.base import code_stats
 
 
-def expert_labels(expert_action: ActionConfig, a_e: np.ndarray, env, task, scale: float = 1.0) -> np.ndarray:
+def expert_labels(expert_action: ActionConfig, a_e, env, task, scale: float = 1.0):
     """The student's label ``(N, nu)`` for expert actions ``a_e``: the expert's PD target
     (``pd_targets`` with the expert's action map, clipped as the simulation clips it) minus the
-    current hinge angles, over the student's action scale. Call it before the step."""
-    target = np.clip(pd_targets(expert_action, a_e, env, task), env.ctrl_low, env.ctrl_high)
+    current hinge angles, over the student's action scale. Call it before the step. Host arrays
+    or, for an on-device environment, device tensors."""
+    target = xp(a_e).clip(pd_targets(expert_action, a_e, env, task), env.ctrl_low, env.ctrl_high)
     return (target - env.qpos[:, env.hinge_adr]) / scale
 
 
@@ -60,13 +62,16 @@ class StudentPolicy:
     def __init__(self, model: LatentPrior, num_codebooks: int | None = None):
         self.model, self.num_codebooks = model, num_codebooks
 
+    def parameters(self):
+        return self.model.parameters()
+
     @torch.no_grad()
     def act(self, x: torch.Tensor, deterministic: bool = True):
         m = self.model
         m.eval()
         xn = m.norm(x)
         a = m(xn, self.num_codebooks, sample=not deterministic).action
-        zero = torch.zeros(len(x))
+        zero = torch.zeros(len(x), device=x.device)
         return xn, a, zero, zero
 
 
@@ -98,21 +103,25 @@ class DaggerCollector:
         self.mdp, self.model, self.expert, self.expert_action = mdp, model, expert, expert_action
         self.horizon, self.action_noise, self.scale = horizon, action_noise, scale
         self.key = mdp.task.reward_key
+        self.on_device = mdp.env.on_device  # env.on_device: the batch and every step stay on the physics device
+        self.device = mdp.env.torch_device if self.on_device else None
 
     def start(self) -> None:
         self.obs, self.goal = self.mdp.reset()
-        self.episodes = Episodes.empty(self.mdp.num_envs)
+        self.episodes = Episodes.empty(self.mdp.num_envs, self.device)
 
     def collect(self) -> tuple[DaggerBatch, dict]:
-        mdp, model, T, N = self.mdp, self.model, self.horizon, self.mdp.num_envs
+        mdp, model, T, N, dev = self.mdp, self.model, self.horizon, self.mdp.num_envs, self.device
         env = mdp.env
-        b = DaggerBatch(torch.zeros(T, N, mdp.obs_dim + mdp.goal_dim), torch.zeros(T, N, mdp.action_dim),
-                        torch.zeros(T, N), torch.zeros(T, N, dtype=torch.bool), torch.zeros(T, N, dtype=torch.bool))
-        err = torch.zeros(T, N)
-        idx = torch.full((T, N, max(model.num_codebooks, 1)), -1, dtype=torch.long)
+        z = lambda *shape, dtype=torch.float32: torch.zeros(*shape, dtype=dtype, device=dev)  # noqa: E731
+        b = DaggerBatch(z(T, N, mdp.obs_dim + mdp.goal_dim), z(T, N, mdp.action_dim), z(T, N),
+                        z(T, N, dtype=torch.bool), z(T, N, dtype=torch.bool))
+        err = z(T, N)
+        idx = torch.full((T, N, max(model.num_codebooks, 1)), -1, dtype=torch.long, device=dev)
+        host = (lambda a_: a_) if self.on_device else (lambda a_: a_.numpy())  # noqa: E731  (what the MDP takes)
         model.eval()
         for t in range(T):
-            x = as_tensor(np.concatenate([self.obs, self.goal], 1))
+            x = as_tensor(xp(self.obs).concatenate([self.obs, self.goal], 1))
             model.norm.update(x)
             with torch.no_grad():
                 out = model(model.norm(x))
@@ -120,16 +129,17 @@ class DaggerCollector:
                 if self.action_noise > 0:
                     a = a + self.action_noise * torch.randn_like(a)
                 a_e = self.expert.policy.act(self.expert.norm(x), True)[0]  # its mean action; no critic
-            label = as_tensor(expert_labels(self.expert_action, a_e.numpy(), env, mdp.task, self.scale))
+            label = as_tensor(expert_labels(self.expert_action, host(a_e), env, mdp.task, self.scale))
             b.x[t], b.labels[t], err[t] = x, label, squared_norm(out.action - label)
             if out.indices is not None:
                 idx[t] = out.indices
-            obs, goal, rewards, term, trunc, _ = mdp.step(a.numpy())
-            b.rewards[t] = torch.from_numpy(rewards[self.key])
-            b.terminated[t], b.truncated[t] = torch.from_numpy(term), torch.from_numpy(trunc)
+            obs, goal, rewards, term, trunc, _ = mdp.step(host(a))
+            b.rewards[t] = torch.as_tensor(rewards[self.key])
+            b.terminated[t], b.truncated[t] = torch.as_tensor(term), torch.as_tensor(trunc)
             done = term | trunc
-            if done.any():
-                obs, goal = mdp.reset(np.flatnonzero(done))
+            ids = done.nonzero().flatten() if self.on_device else np.flatnonzero(done)
+            if len(ids):
+                obs, goal = mdp.reset(ids)
             self.obs, self.goal = obs, goal
         stats = self.episodes.add(b, b.rewards, self.key, mdp.dt)
         # The student's error on states it has not been trained on yet: the honest DAgger curve.

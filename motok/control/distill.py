@@ -144,8 +144,9 @@ class DistillTrainer:
         self.cfg, self.hum, self.lib = cfg, hum, lib
         torch.manual_seed(cfg.seed)  # the same initial weights on every rank (the runner reseeds ranks > 0 after)
         self.mdp = m = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, runner.rank_seed(cfg.seed, d.rank))
-        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim)
-        self.expert = expert.eval().requires_grad_(False)
+        device = m.env.torch_device if m.env.on_device else None  # the student and teacher where the rollout is
+        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim).to(device)
+        self.expert = expert.eval().requires_grad_(False).to(device)
         if expert.norm.mean.shape[0] != m.obs_dim + m.goal_dim:
             raise UserError(f"the expert reads {expert.norm.mean.shape[0]} inputs, the task gives "
                             f"{m.obs_dim + m.goal_dim}: another humanoid or goal?")
@@ -205,7 +206,7 @@ class DistillTrainer:
         sums: dict[str, float] = {}
         steps, reset, active = 0, 0, 0
         for _ in range(c.epochs):
-            perm = torch.randperm(N)
+            perm = torch.randperm(N).to(b.x.device)
             for i in range(0, N - n + 1, n):  # a ragged last minibatch would be noisier: dropped
                 cols = perm[i:i + n]
                 out = model(model.norm(b.x[:, cols].flatten(0, 1)))

@@ -31,13 +31,25 @@ def eval_metrics(res: dict, prefix: str = "eval_") -> dict:
             f"{prefix}g_mpjpe_mm": o["g_mpjpe_mm"]}
 
 
+def policy_device(policy):
+    """Where a policy's weights are (a trainer may keep them on the physics device); CPU for a
+    policy that is not a module (a student wrapper) or has no weights."""
+    import torch
+
+    params = getattr(policy, "parameters", None)
+    first = next(params(), None) if callable(params) else None
+    return first.device if first is not None else torch.device("cpu")
+
+
 def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfig, action: ActionConfig,
          keep_qpos: bool = False) -> dict:
     """One batch of clips ``ids`` from frame 0 until each ends or fails: simulated and reference body
     positions ``(N, T + 1, J, 3)`` with the ``alive`` mask of the frames each clip played, and the
     first environment's qpos when ``keep_qpos``."""
     N = len(ids)
-    env = HumanoidEnv(hum, replace(sim, num_envs=N))
+    # Host arrays whatever the training used (an evaluation is not the hot path); the policy stays where it is.
+    env = HumanoidEnv(hum, replace(sim, num_envs=N, on_device=False))
+    device = policy_device(ac)
     # The generator is never drawn from: every start is given.
     it = ImitationTask(task, env, lib, np.random.default_rng(0))
     mdp = TaskEnv(env, it, partial(pd_targets, action))
@@ -47,8 +59,8 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
     active, success = np.ones(N, bool), np.zeros(N, bool)
     worst = np.zeros(N)  # largest single-body error over the frames played
     while active.any():
-        _, a, _, _ = ac.act(as_tensor(np.concatenate([obs, goal], 1)), deterministic=True)
-        obs, goal, _, term, trunc, info = mdp.step(a.numpy())
+        _, a, _, _ = ac.act(as_tensor(np.concatenate([obs, goal], 1)).to(device), deterministic=True)
+        obs, goal, _, term, trunc, info = mdp.step(a.cpu().numpy())
         worst = np.where(active, np.maximum(worst, info["max_body_error"]), worst)
         pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[lib.frame_index(it.clip, it.frame)])
         alive.append(active.copy())

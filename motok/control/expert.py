@@ -90,12 +90,15 @@ def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: in
 
 def imitation_mdp(hum: Humanoid, lib: ReferenceLibrary, sim: SimConfig, task: ImitationTaskConfig,
                   action: ActionConfig, seed: int) -> TaskEnv:
+    """The imitation MDP; with ``sim.on_device`` its library, episode state and start draws (a
+    seeded ``torch.Generator``) live on the physics device too."""
     env = HumanoidEnv(hum, sim)
-    return TaskEnv(env, ImitationTask(task, env, lib, np.random.default_rng(seed)), partial(pd_targets, action))
-
-
-def _json_rng(g: np.random.Generator) -> str:
-    return json.dumps(g.bit_generator.state)
+    if env.on_device:
+        lib = lib.to(env.torch_device)
+        rng = torch.Generator(device=env.torch_device).manual_seed(seed)
+    else:
+        rng = np.random.default_rng(seed)
+    return TaskEnv(env, ImitationTask(task, env, lib, rng), partial(pd_targets, action))
 
 
 class ExpertTrainer:
@@ -115,10 +118,12 @@ class ExpertTrainer:
         # Group 0 keeps the single-group streams, so groups: 1 is the plain sequential rollout.
         self.mdps = [imitation_mdp(hum, lib, part, cfg.task, cfg.action, seed + 7919 * g) for g in range(G)]
         self.mdp = m = self.mdps[0]
-        self.ac = build_actor_critic(cfg.net, m.obs_dim, m.goal_dim, m.action_dim)
+        device = m.env.torch_device if m.env.on_device else None  # networks and buffers where the rollout is
+        self.ac = build_actor_critic(cfg.net, m.obs_dim, m.goal_dim, m.action_dim).to(device)
         self.ppo = PPO(self.ac, cfg.ppo, cfg.iterations)
         use_amp = cfg.amp.enabled and cfg.w_style != 0
-        self.amp = AMP(cfg.amp, reference_observations(lib, m.env.end_effectors), lib.starts) if use_amp else None
+        self.amp = AMP(cfg.amp, reference_observations(lib, m.env.end_effectors), lib.starts, device) \
+            if use_amp else None
         hooks = (AMPHook(self.amp, cfg.w_style, self.amp_rng),) if self.amp else ()
         self.collector = Collector(self.mdps, self.ac, cfg.ppo.horizon, cfg.w_im, hooks)
         self.samples_per_iteration = cfg.ppo.horizon * self.collector.num_envs * d.world
@@ -140,8 +145,8 @@ class ExpertTrainer:
         return ts
 
     def rank_state(self) -> dict:
-        rs = {"task_rng": _json_rng(self.mdp.task.rng), "amp_rng": _json_rng(self.amp_rng),
-              "group_task_rngs": [_json_rng(m.task.rng) for m in self.mdps[1:]]}
+        rs = {**runner.task_rng_state(self.mdp), "amp_rng": runner.generator_state(self.amp_rng),
+              "group_task_rngs": [runner.generator_state(m.task.rng) for m in self.mdps[1:]]}
         if self.amp is not None:
             rs["replay"] = self.amp.replay.state()
         return rs
@@ -156,10 +161,10 @@ class ExpertTrainer:
         self.ppo.opt.load_state_dict(shared["ppo_opt"])
         self.sampler.load(shared["sampler"])
         self._set_clip_p()
-        self.mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+        runner.load_task_rng(self.mdp, rank)
         for m, st in zip(self.mdps[1:], rank.get("group_task_rngs", [])):
-            m.task.rng.bit_generator.state = json.loads(st)
-        self.amp_rng.bit_generator.state = json.loads(rank["amp_rng"])
+            runner.load_generator(m.task.rng, st)
+        runner.load_generator(self.amp_rng, rank["amp_rng"])
         if self.amp is not None:
             self.amp.opt.load_state_dict(shared["amp_opt"])
             self.amp.replay.load(rank["replay"])

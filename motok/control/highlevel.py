@@ -53,19 +53,20 @@ class LatentActionMap:
         self.model, self.codebooks, self.scale = model.eval().requires_grad_(False), codebooks, float(scale)
 
     @torch.no_grad()
-    def latent(self, sn: torch.Tensor, actions: np.ndarray) -> torch.Tensor:
+    def latent(self, sn: torch.Tensor, actions) -> torch.Tensor:
         """``z_bar`` for normalised observations ``sn`` and high-level actions."""
         m = self.model
         if m.quantizer is None:
-            return m.offset_to_latent(sn, torch.as_tensor(actions, dtype=torch.float32))
-        return m.codes_to_latent(sn, torch.as_tensor(actions, dtype=torch.int64), self.codebooks)
+            return m.offset_to_latent(sn, torch.as_tensor(actions, dtype=torch.float32, device=sn.device))
+        return m.codes_to_latent(sn, torch.as_tensor(actions, dtype=torch.int64, device=sn.device), self.codebooks)
 
     @torch.no_grad()
-    def __call__(self, actions: np.ndarray, env, task) -> np.ndarray:
+    def __call__(self, actions, env, task):
         m = self.model
-        sn = m.norm_obs(torch.as_tensor(env.observation(), dtype=torch.float32))
-        a = m.decode(sn, self.latent(sn, actions)).numpy()
-        return residual_targets(a, env.qpos[:, env.hinge_adr], self.scale)
+        device = next(m.parameters()).device  # the prior's; the environment's arrays may be host or device
+        sn = m.norm_obs(torch.as_tensor(env.observation(), dtype=torch.float32, device=device))
+        a = m.decode(sn, self.latent(sn, actions))
+        return residual_targets(a if env.on_device else a.cpu().numpy(), env.qpos[:, env.hinge_adr], self.scale)
 
 
 def action_space(model: LatentPrior, codebooks: int | None) -> dict:

@@ -118,16 +118,17 @@ class Rollout:
     the policy's shape and dtype (``(A,)`` float for a Gaussian, ``(M,)`` int64 for codebook indices)."""
 
     def __init__(self, horizon: int, num_envs: int, in_dim: int, action_shape: tuple[int, ...],
-                 action_dtype: torch.dtype = torch.float32):
+                 action_dtype: torch.dtype = torch.float32, device=None):
         T, N = horizon, num_envs
-        self.x = torch.zeros(T, N, in_dim)
-        self.actions = torch.zeros(T, N, *action_shape, dtype=action_dtype)
-        self.logp = torch.zeros(T, N)
-        self.values = torch.zeros(T, N)
-        self.rewards = torch.zeros(T, N)
-        self.final_values = torch.zeros(T, N)  # V(final observation) of truncated steps
-        self.terminated = torch.zeros(T, N, dtype=torch.bool)
-        self.truncated = torch.zeros(T, N, dtype=torch.bool)
+        z = lambda *shape, dtype=torch.float32: torch.zeros(*shape, dtype=dtype, device=device)  # noqa: E731
+        self.x = z(T, N, in_dim)
+        self.actions = z(T, N, *action_shape, dtype=action_dtype)
+        self.logp = z(T, N)
+        self.values = z(T, N)
+        self.rewards = z(T, N)
+        self.final_values = z(T, N)  # V(final observation) of truncated steps
+        self.terminated = z(T, N, dtype=torch.bool)
+        self.truncated = z(T, N, dtype=torch.bool)
 
     def next_values(self, last_value: torch.Tensor) -> torch.Tensor:
         """``V`` of the state each step reached: the following step's value inside an episode,

@@ -21,13 +21,18 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from motok.arrays import xp
 from motok.control.networks import ActorCritic
 from motok.control.ppo import Rollout
 from motok.control.tasks.base import TaskEnv
+from motok.errors import UserError
 
 
 def as_tensor(a) -> torch.Tensor:
-    """float32 tensor of ``a``; a diverged env may hold non-finite rows, which become finite."""
+    """float32 tensor of ``a`` (where a tensor already is); a diverged env may hold non-finite rows,
+    which become finite."""
+    if isinstance(a, torch.Tensor):
+        return torch.nan_to_num(a.to(torch.float32))
     return torch.as_tensor(np.nan_to_num(np.asarray(a, dtype=np.float32)))
 
 
@@ -44,33 +49,39 @@ class RewardHook(Protocol):
 
 @dataclass
 class Episodes:
-    """Running per-environment episode sums; ``add`` returns the statistics of the episodes it closed."""
+    """Running per-environment episode sums (float64 tensors where the rollout is); ``add`` returns
+    the statistics of the episodes it closed. The closed episodes are summed, not listed, so a
+    rollout on a device is read on the host once per iteration, not once per step."""
 
-    ret: np.ndarray
-    main: np.ndarray
-    length: np.ndarray
+    ret: torch.Tensor
+    main: torch.Tensor
+    length: torch.Tensor
 
     @classmethod
-    def empty(cls, n: int) -> "Episodes":
-        return cls(np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64))
+    def empty(cls, n: int, device=None) -> "Episodes":
+        z = torch.zeros(n, dtype=torch.float64, device=device)
+        return cls(z, z.clone(), z.clone())
 
     def add(self, ro: Rollout, main: torch.Tensor, key: str, dt: float) -> dict:
-        rets, mains, lens, succ = [], [], [], []
+        # Sums over closed episodes of: return, main reward per step, length, ended without failing.
+        sums = torch.zeros(5, dtype=torch.float64, device=self.ret.device)
         for t in range(len(ro.rewards)):
-            self.ret += ro.rewards[t].numpy()
-            self.main += main[t].numpy()
+            self.ret += ro.rewards[t]
+            self.main += main[t]
             self.length += 1
-            done = (ro.terminated[t] | ro.truncated[t]).numpy()
-            if done.any():
-                rets += self.ret[done].tolist()
-                mains += (self.main[done] / self.length[done]).tolist()
-                lens += self.length[done].tolist()
-                succ += ro.truncated[t].numpy()[done].tolist()  # ended without failing: clip end or time limit
-                self.ret[done], self.main[done], self.length[done] = 0.0, 0.0, 0
-        if not rets:
+            done = (ro.terminated[t] | ro.truncated[t]).to(torch.float64)
+            ok = ro.truncated[t].to(torch.float64)  # clip end or time limit
+            sums += torch.stack([(self.ret * done).sum(), (self.main / self.length * done).sum(),
+                                 (self.length * done).sum(), (ok * done).sum(), done.sum()])
+            keep = 1.0 - done
+            self.ret *= keep
+            self.main *= keep
+            self.length *= keep
+        ret, per_step, length, ok, n = sums.tolist()
+        if n == 0:
             return {}
-        return {"episode_return": float(np.mean(rets)), f"episode_{key}": float(np.mean(mains)),
-                "episode_seconds": float(np.mean(lens)) * dt, "success": float(np.mean(succ)), "episodes": len(rets)}
+        return {"episode_return": ret / n, f"episode_{key}": per_step / n, "episode_seconds": length / n * dt,
+                "success": ok / n, "episodes": int(n)}
 
 
 class Collector:
@@ -90,6 +101,11 @@ class Collector:
         self.ac, self.horizon, self.task_weight, self.hooks = ac, horizon, task_weight, tuple(hooks)
         self.threaded = threaded and len(self.mdps) > 1
         first = self.mdps[0]
+        # On the device (env.on_device): observations, actions, rewards and buffers stay there.
+        self.on_device = first.env.on_device
+        self.device = first.env.torch_device if self.on_device else None
+        if self.on_device and len(self.mdps) > 1:
+            raise UserError("env.groups > 1 overlaps host physics with the policy; on the device use one group")
         self.key, self.dt = first.task.reward_key, first.dt
         self.obs_dim, self.goal_dim = first.obs_dim, first.goal_dim
         self.offsets = np.cumsum([0] + [m.num_envs for m in self.mdps])
@@ -101,10 +117,10 @@ class Collector:
             o, g = m.reset()
             self.obs.append(o)
             self.goal.append(g)
-        self.episodes = Episodes.empty(self.num_envs)
+        self.episodes = Episodes.empty(self.num_envs, self.device)
 
     def _input(self, obs, goal) -> torch.Tensor:
-        return as_tensor(np.concatenate([obs, goal], 1))
+        return as_tensor(xp(obs).concatenate([obs, goal], 1))
 
     def _act(self, g: int, t: int, ro: Rollout) -> None:
         cols = slice(self.offsets[g], self.offsets[g + 1])
@@ -112,32 +128,42 @@ class Collector:
         self.ac.norm.update(x)
         xn, a, logp, v = self.ac.act(x)
         ro.x[t, cols], ro.actions[t, cols], ro.logp[t, cols], ro.values[t, cols] = xn, a, logp, v
-        self.mdps[g].launch(a.numpy(), self.threaded)
+        self.mdps[g].launch(a if self.on_device else a.numpy(), self.threaded)
 
     def _record(self, g: int, t: int, ro: Rollout, main, s, s2) -> None:
         mdp, cols = self.mdps[g], slice(self.offsets[g], self.offsets[g + 1])
         obs, goal, rewards, term, trunc, _ = mdp.finish()
-        main[t, cols] = torch.from_numpy(rewards[self.key])
-        ro.terminated[t, cols], ro.truncated[t, cols] = torch.from_numpy(term), torch.from_numpy(trunc)
+        main[t, cols] = torch.as_tensor(rewards[self.key])
+        ro.terminated[t, cols], ro.truncated[t, cols] = torch.as_tensor(term), torch.as_tensor(trunc)
         if s is not None:
             s[t, cols], s2[t, cols] = as_tensor(self.obs[g]), as_tensor(obs)
-        if trunc.any():  # bootstrapping needs the value of the final observation, before the reset
+        # Bootstrapping needs the value of a truncated episode's final observation, before the reset.
+        if self.on_device:  # every row's value, kept where truncated: no host read of the mask
             with torch.no_grad():
-                xf = self.ac.norm(self._input(obs[trunc], goal[trunc]))
-                ro.final_values[t, torch.from_numpy(np.flatnonzero(trunc) + self.offsets[g])] = self.ac.value(xf)
-        done = term | trunc
-        if done.any():
-            obs, goal = mdp.reset(np.flatnonzero(done))
+                v = self.ac.value(self.ac.norm(self._input(obs, goal)))
+            ro.final_values[t, cols] = torch.where(trunc, v, ro.final_values[t, cols])
+            # The number of finished episodes sizes the reset: the one read per step on the host.
+            ids = (term | trunc).nonzero().flatten()
+            if len(ids):
+                obs, goal = mdp.reset(ids)
+        else:
+            if trunc.any():
+                with torch.no_grad():
+                    xf = self.ac.norm(self._input(obs[trunc], goal[trunc]))
+                    ro.final_values[t, torch.from_numpy(np.flatnonzero(trunc) + self.offsets[g])] = self.ac.value(xf)
+            done = term | trunc
+            if done.any():
+                obs, goal = mdp.reset(np.flatnonzero(done))
         self.obs[g], self.goal[g] = obs, goal
 
     def collect(self) -> tuple[Rollout, torch.Tensor, dict]:
         ac, T, N, G = self.ac, self.horizon, self.num_envs, len(self.mdps)
         pol = ac.policy
-        ro = Rollout(T, N, self.obs_dim + self.goal_dim, pol.action_shape, pol.action_dtype)
+        ro = Rollout(T, N, self.obs_dim + self.goal_dim, pol.action_shape, pol.action_dtype, self.device)
         keep = bool(self.hooks)
-        s = torch.zeros(T, N, self.obs_dim) if keep else None
-        s2 = torch.zeros(T, N, self.obs_dim) if keep else None
-        main = torch.zeros(T, N)
+        s = torch.zeros(T, N, self.obs_dim, device=self.device) if keep else None
+        s2 = torch.zeros(T, N, self.obs_dim, device=self.device) if keep else None
+        main = torch.zeros(T, N, device=self.device)
         in_flight: list[tuple[int, int]] = []  # (group, step) launched and not yet recorded
         for t in range(T):
             for g in range(G):
@@ -148,7 +174,8 @@ class Collector:
         while in_flight:
             self._record(*in_flight.pop(0), ro, main, s, s2)
         with torch.no_grad():
-            last_value = ac.value(ac.norm(self._input(np.concatenate(self.obs), np.concatenate(self.goal))))
+            cat = xp(self.obs[0]).concatenate
+            last_value = ac.value(ac.norm(self._input(cat(self.obs), cat(self.goal))))
         terms = {h.name: h.reward(s.flatten(0, 1), s2.flatten(0, 1)).view(T, N) for h in self.hooks}
         ro.rewards = self.task_weight * main
         for h in self.hooks:

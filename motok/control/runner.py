@@ -80,15 +80,28 @@ def load_counters(tr, shared: dict) -> None:
     tr.iteration, tr.samples, tr.wall = int(shared["iteration"]), int(shared["samples"]), float(shared["wall"])
 
 
-def task_rng_state(mdp) -> dict:
-    """A rank's task generator, JSON (``rank_state``); :func:`load_task_rng` restores it."""
+def generator_state(g):
+    """A generator's state for ``rank_state``: JSON for numpy's, the state tensor for torch's (an
+    on-device task draws its resets from a ``torch.Generator``)."""
     import json
-    return {"task_rng": json.dumps(mdp.task.rng.bit_generator.state)}
+    return g.get_state() if isinstance(g, torch.Generator) else json.dumps(g.bit_generator.state)
+
+
+def load_generator(g, state) -> None:
+    import json
+    if isinstance(g, torch.Generator):
+        g.set_state(state)
+    else:
+        g.bit_generator.state = json.loads(state)
+
+
+def task_rng_state(mdp) -> dict:
+    """A rank's task generator (``rank_state``); :func:`load_task_rng` restores it."""
+    return {"task_rng": generator_state(mdp.task.rng)}
 
 
 def load_task_rng(mdp, rank: dict) -> None:
-    import json
-    mdp.task.rng.bit_generator.state = json.loads(rank["task_rng"])
+    load_generator(mdp.task.rng, rank["task_rng"])
 
 
 def finish_step(tr, stats: dict, t0: float, t1: float) -> dict:

@@ -30,6 +30,7 @@ from motok.config import from_dict
 from motok.control import runner
 from motok.control.distill import KIND as PRIOR_KIND
 from motok.control.distill import DistillConfig, load_prior, split_state
+from motok.control.evaluate import policy_device
 from motok.control.generate import check_codebooks
 from motok.control.highlevel import HighLevelNetConfig, LatentActionMap, action_space, build_high_level
 from motok.control.networks import ActorCritic
@@ -81,7 +82,11 @@ def task_mdp(cfg: TaskTrainConfig, hum: Humanoid, lib: ReferenceLibrary, model: 
              seed: int, sim: SimConfig | None = None) -> TaskEnv:
     """Physics + the task + the frozen prior's decoder as the action map."""
     env = HumanoidEnv(hum, sim or cfg.env)
-    task = registry.make(cfg.task, cfg.tasks, env, lib, np.random.default_rng(seed))
+    if env.on_device:  # the library, the episode state and the draws where the physics is
+        lib, rng = lib.to(env.torch_device), torch.Generator(device=env.torch_device).manual_seed(seed)
+    else:
+        rng = np.random.default_rng(seed)
+    task = registry.make(cfg.task, cfg.tasks, env, lib, rng)
     return TaskEnv(env, task, LatentActionMap(model, check_codebooks(model, cfg.codebooks), scale))
 
 
@@ -95,7 +100,9 @@ class TaskTrainer:
         self.cfg, self.hum, self.lib, self.model = cfg, hum, lib, model
         torch.manual_seed(cfg.seed)
         self.mdp = m = task_mdp(cfg, hum, lib, model, prior_cfg.action.scale, runner.rank_seed(cfg.seed, d.rank))
-        self.ac = build_high_level(cfg.net, model, m.obs_dim, m.goal_dim, cfg.codebooks)
+        device = m.env.torch_device if m.env.on_device else None  # policy, frozen prior and buffers there
+        model.to(device)
+        self.ac = build_high_level(cfg.net, model, m.obs_dim, m.goal_dim, cfg.codebooks).to(device)
         self.ppo = PPO(self.ac, cfg.ppo, cfg.iterations)
         self.collector = Collector(m, self.ac, cfg.ppo.horizon)
         self.samples_per_iteration = cfg.ppo.horizon * m.num_envs * d.world
@@ -140,8 +147,10 @@ class TaskTrainer:
 
 def policy_fn(ac: ActorCritic, deterministic: bool):
     """``act(obs, goal) -> actions`` (numpy) for the task evaluations."""
+    device = policy_device(ac)
+
     def act(obs: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        return ac.act(as_tensor(np.concatenate([obs, goal], 1)), deterministic)[1].numpy()
+        return ac.act(as_tensor(np.concatenate([obs, goal], 1)).to(device), deterministic)[1].cpu().numpy()
     return act
 
 
@@ -150,12 +159,14 @@ def evaluate_policy(cfg: TaskTrainConfig, hum, lib, model: LatentPrior, scale: f
     """The task's own evaluation (``registry.evaluate``) of ``ac`` on ``episodes`` episodes, with
     its own environments and a fixed seed, so two evaluations of one policy agree; ``render``: a
     video of one more episode with the task's markers (targets, keyframes, the head target)."""
-    sim = SimConfig(**{**asdict(cfg.env), "num_envs": max(1, min(episodes, cfg.env.num_envs))})
+    # Evaluations run on host arrays (the task evaluations are numpy), the policy where it is.
+    host = {**asdict(cfg.env), "on_device": False}
+    sim = SimConfig(**{**host, "num_envs": max(1, min(episodes, cfg.env.num_envs))})
     mdp = task_mdp(cfg, hum, lib, model, scale, seed, sim)
     act = policy_fn(ac, cfg.deterministic_eval)
     res = registry.evaluate(cfg.task, mdp, act, episodes)
     if render is not None:
-        one = task_mdp(cfg, hum, lib, model, scale, seed, SimConfig(**{**asdict(cfg.env), "num_envs": 1}))
+        one = task_mdp(cfg, hum, lib, model, scale, seed, SimConfig(**{**host, "num_envs": 1}))
         res["video"] = render_episode(one, act, render, f"{cfg.task} over the {model.kind} prior")
     return res
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motok.arrays import copy, like, xp
 from motok.errors import UserError
 from motok.sim.humanoid import Humanoid, load_humanoid
 from motok.sim.obs import Bodies, observation
@@ -48,13 +49,21 @@ class SimConfig:
     device: str = "cpu"  # the physics device; "cuda" (or "cuda:1") needs backend warp
     nan_actions: str = "raise"  # or "terminate": that env holds its pose and is reported invalid
     groups: int = 1  # environment groups a collector steps in turn, each while the policy runs on another
+    # Keep the whole rollout (state, observations, goals, rewards, resets, policy, buffers) where the
+    # physics state is: torch tensors on MuJoCo Warp's device, with no host copy per step (docs/sim.md
+    # "On the device"). C MuJoCo's state is host memory, where the rollout runs anyway: no effect there.
+    on_device: bool = False
 
     def portable(self) -> "SimConfig":
         """C MuJoCo on the CPU, whatever backend and device the config says: how a loaded run's
         config starts (where a run was trained is no default for where it is used, e.g. a GPU run
         evaluated on a laptop; an evaluation's ``--device`` then chooses)."""
-        self.backend, self.device = "mujoco", "cpu"
+        self.backend, self.device, self.on_device = "mujoco", "cpu", False
         return self
+
+    @property
+    def rollout_on_device(self) -> bool:
+        return self.on_device and self.backend == "warp"
 
     def on(self, device: str | None) -> "SimConfig":
         """The physics on ``device`` (an evaluation's ``--device``; None keeps the run's): a GPU means
@@ -91,10 +100,21 @@ class HumanoidEnv:
             raise UserError(f"{self.hum.path}: actuators must drive the hinges in qpos order")
         self.hinge_dof = m.jnt_dofadr[driven]
         self.end_effectors = list(self.hum.skeleton.end_effectors)
-        self.bodies: Bodies = self.stepper.bodies()
+        self.on_device = c.rollout_on_device
+        if self.on_device:
+            st = self.stepper
+            self.torch_device = st.torch_device
+            # The constants the action map and the checks read every step, moved once.
+            self.hinge_adr, self.hinge_dof = like(st.qpos_t, self.hinge_adr), like(st.qpos_t, self.hinge_dof)
+            self.velocity_lead = like(st.qpos_t, self.velocity_lead)
+            self.ctrl_low, self.ctrl_high = like(st.qpos_t, self.ctrl_low), like(st.qpos_t, self.ctrl_high)
+        self.bodies: Bodies = self._bodies()
         self._obs = observation(self.qpos, self.qvel, self.bodies, self.end_effectors)
         self._worker = None  # a one-thread executor, created by the first threaded launch
         self._pending = None
+
+    def _bodies(self, ids=None) -> Bodies:
+        return self.stepper.bodies_tensor(ids) if self.on_device else self.stepper.bodies(ids)
 
     @property
     def action_dim(self) -> int:
@@ -105,22 +125,26 @@ class HumanoidEnv:
         return self._obs.shape[1]
 
     @property
-    def qpos(self) -> np.ndarray:
-        """The humanoid's generalized positions ``(N, hum.nq)``, a live view of the stepper's."""
-        return self.stepper.qpos[:, :self.nq]
+    def qpos(self):
+        """The humanoid's generalized positions ``(N, hum.nq)``, a live view of the stepper's
+        (host numpy, or the device tensor with ``on_device``)."""
+        return (self.stepper.qpos_t if self.on_device else self.stepper.qpos)[:, :self.nq]
 
     @property
-    def qvel(self) -> np.ndarray:
-        return self.stepper.qvel[:, :self.nv]
+    def qvel(self):
+        return (self.stepper.qvel_t if self.on_device else self.stepper.qvel)[:, :self.nv]
 
-    def observation(self) -> np.ndarray:
+    def observation(self):
         """Eq. 7 of every environment at its current state, ``(N, obs_dim)`` (a copy)."""
-        return self._obs.copy()
+        return copy(self._obs)
 
     def set_state(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Overwrite the states of ``ids`` and refresh their body states and observations: the
         humanoid's ``(len(ids), hum.nq)`` / ``(.., hum.nv)`` (other bodies of the model keep theirs)
-        or the model's whole ``(.., nq)`` / ``(.., nv)``. Solver warm starts are forgotten either way."""
+        or the model's whole ``(.., nq)`` / ``(.., nv)``. Solver warm starts are forgotten either way.
+        With ``on_device`` all three are device tensors and nothing is checked on the host."""
+        if self.on_device:
+            return self._set_state_tensor(ids, qpos, qvel)
         ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
         if ids.size and (ids.min() < 0 or ids.max() >= self.num_envs):
             raise IndexError(f"environment ids must be in 0..{self.num_envs - 1}, got {ids.tolist()}")
@@ -140,24 +164,42 @@ class HumanoidEnv:
             self.bodies.put(ids, sim)
         self._obs[ids] = observation(self.qpos[ids], self.qvel[ids], sim, self.end_effectors)
 
-    def _checked(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q = np.asarray(targets, dtype=np.float64)
-        if q.shape != (self.num_envs, self.action_dim):
-            raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_dim}), got {q.shape}")
-        invalid = ~np.isfinite(q).all(1)
-        if invalid.any():
-            if self.cfg.nan_actions == "raise":
-                raise ValueError(f"non-finite actions for environments {np.flatnonzero(invalid).tolist()}; "
-                                 "nothing was stepped (set nan_actions='terminate' to end those episodes instead)")
-            q = np.where(invalid[:, None], self.qpos[:, self.hinge_adr], q)
-        return np.clip(q, self.ctrl_low, self.ctrl_high), invalid
+    def _set_state_tensor(self, ids, qpos, qvel) -> None:
+        import torch
+
+        st, m = self.stepper, self.hum.model
+        if qpos.shape[-1] != m.nq:  # the humanoid's prefix only: the other bodies keep theirs
+            qpos = torch.cat([qpos.expand(len(ids), self.nq), st.qpos_t[ids, self.nq:]], 1)
+            qvel = torch.cat([qvel.expand(len(ids), self.nv), st.qvel_t[ids, self.nv:]], 1)
+        st.set_state_tensor(ids, qpos, qvel)
+        sim = st.bodies_tensor(ids)
+        self.bodies.put(ids, sim)
+        self._obs[ids] = observation(self.qpos[ids], self.qvel[ids], sim, self.end_effectors)
+
+    def _checked(self, targets):
+        """Targets as the stepper takes them (host float64, or the device tensor's dtype), non-finite
+        rows refused or held at the current pose, clipped to the actuator ranges; ``(ctrl, invalid)``."""
+        q = targets.to(self.stepper.qpos_t.dtype) if self.on_device else np.asarray(targets, dtype=np.float64)
+        if tuple(q.shape) != (self.num_envs, self.action_dim):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_dim}), got {tuple(q.shape)}")
+        x = xp(q)
+        invalid = ~x.isfinite(q).all(1)
+        # On the device, "raise" reads the mask on the host (one sync a step); GPU recipes use "terminate".
+        if self.cfg.nan_actions == "raise" and bool(invalid.any()):
+            bad = [i for i, b in enumerate(invalid.tolist()) if b]
+            raise ValueError(f"non-finite actions for environments {bad}; nothing was stepped "
+                             "(set nan_actions='terminate' to end those episodes instead)")
+        q = x.where(invalid[:, None], self.qpos[:, self.hinge_adr], q)
+        return x.clip(q, self.ctrl_low, self.ctrl_high), invalid
 
     def launch(self, targets: np.ndarray, threaded: bool = True) -> None:
         """Start one control step with PD targets ``(N, nu)``; :meth:`finish` completes it."""
         if self._pending is not None:
             raise RuntimeError("finish() the step in flight before launching another")
         ctrl, invalid = self._checked(targets)
-        if threaded:
+        if self.on_device:  # a device queues the work by itself: no thread
+            self._pending = (self.stepper.step_tensor(ctrl), invalid)
+        elif threaded:
             if self._worker is None:
                 from concurrent.futures import ThreadPoolExecutor
                 self._worker = ThreadPoolExecutor(1, thread_name_prefix="motok-physics")
@@ -172,7 +214,7 @@ class HumanoidEnv:
         result, invalid = self._pending
         self._pending = None
         diverged = result.result() if hasattr(result, "result") else result
-        self.bodies = self.stepper.bodies()
+        self.bodies = self._bodies()
         self._obs = observation(self.qpos, self.qvel, self.bodies, self.end_effectors)
         return diverged, invalid
 

@@ -1,7 +1,8 @@
 """Body states, forward kinematics and the proprioceptive observation, vectorized over environments.
 
-Everything here is plain numpy on ``(N, ...)`` arrays, with no MuJoCo calls, so the same code
-serves one environment or thousands, and a GPU port is a change of array library.
+Everything here works on ``(N, ...)`` arrays, with no MuJoCo calls, so the same code serves one
+environment or thousands. The observation terms take numpy arrays or torch tensors
+(:mod:`motok.arrays`): on a MuJoCo Warp rollout they run on the device that holds the state.
 
 The heading frame is the yaw of the root's forward axis (MuJoCo +X at rest): quantities are
 rotated by its inverse so that the policy sees the same numbers wherever the character stands
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from motok.arrays import xp
 from motok.rotations import matrix_to_quat, quat_to_matrix
 
 
@@ -132,25 +134,27 @@ class TreeKinematics:
         return Bodies(pos, vel, ang, rot=rot)
 
 
-def heading(root_rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def heading(root_rot):
     """Cosine and sine of the yaw of the root's forward (+X) axis, ``(...)`` each."""
     fx, fy = root_rot[..., 0, 0], root_rot[..., 1, 0]
-    n = np.maximum(np.hypot(fx, fy), 1e-9)  # the forward axis pointing straight up has no heading
+    x = xp(root_rot)
+    n = x.clip(x.hypot(fx, fy), 1e-9, None)  # the forward axis pointing straight up has no heading
     return fx / n, fy / n
 
 
-def unyaw(c: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+def unyaw(c, s, v):
     """Rotate vectors ``(..., 3)`` by minus the heading: world -> heading frame (elementwise, no matmul)."""
     x, y = v[..., 0], v[..., 1]
-    return np.stack([c * x + s * y, c * y - s * x, v[..., 2]], -1)
+    return xp(v).stack([c * x + s * y, c * y - s * x, v[..., 2]], -1)
 
 
-def observation(qpos: np.ndarray, qvel: np.ndarray, bodies: Bodies, end_effectors) -> np.ndarray:
-    """Eq. 7, ``(N, 1 + 6 + 3 + 3 + 2H + 3E)``."""
-    N = len(qpos)
+def observation(qpos, qvel, bodies: Bodies, end_effectors):
+    """Eq. 7, ``(N, 1 + 6 + 3 + 3 + 2H + 3E)``, numpy or torch (as the state is given)."""
+    N, x = len(qpos), xp(qpos)
     c, s = heading(bodies.rot[:, 0])
     root = bodies.rot[:, 0]
-    six = unyaw(c[:, None], s[:, None], np.stack([root[..., 0], root[..., 1]], 1)).reshape(N, 6)
-    vecs = np.concatenate([bodies.vel[:, :1], bodies.angvel[:, :1], bodies.pos[:, end_effectors] - bodies.pos[:, :1]], 1)
+    six = unyaw(c[:, None], s[:, None], x.stack([root[..., 0], root[..., 1]], 1)).reshape(N, 6)
+    ee = list(end_effectors)
+    vecs = x.concatenate([bodies.vel[:, :1], bodies.angvel[:, :1], bodies.pos[:, ee] - bodies.pos[:, :1]], 1)
     vecs = unyaw(c[:, None], s[:, None], vecs).reshape(N, -1)
-    return np.concatenate([bodies.pos[:, 0, 2:3], six, vecs[:, :6], qpos[:, 7:], qvel[:, 6:], vecs[:, 6:]], -1)
+    return x.concatenate([bodies.pos[:, 0, 2:3], six, vecs[:, :6], qpos[:, 7:], qvel[:, 6:], vecs[:, 6:]], -1)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from motok.arrays import is_tensor, xp
 from motok.artifacts import sha256_file
 from motok.atomic import atomic_path
 from motok.data.dataset import MotionFile, clip_index
@@ -103,7 +104,18 @@ class ReferenceLibrary:
         return len(self.names)
 
     def __post_init__(self):
-        self.lengths = np.diff(self.starts)  # frames per clip
+        self.lengths = self.starts[1:] - self.starts[:-1]  # frames per clip
+
+    def to(self, device, dtype=None) -> "ReferenceLibrary":
+        """The library as torch tensors on ``device`` (floats as ``dtype``, float32 by default:
+        MuJoCo Warp's precision), for a rollout that stays on the device; the look-ups below and
+        the reset and reward terms then run there (:mod:`motok.arrays`)."""
+        import torch
+
+        dtype = dtype or torch.float32
+        arrays = {k: torch.as_tensor(getattr(self, k), dtype=dtype, device=device) for k in self.ARRAYS}
+        return ReferenceLibrary(names=self.names, fps=self.fps,
+                                starts=torch.as_tensor(self.starts, dtype=torch.int64, device=device), **arrays)
 
     def index(self, clip) -> int:
         return clip_index(self.names, clip, within=" in the reference library", error=ReferenceError)
@@ -112,8 +124,8 @@ class ReferenceLibrary:
         """Rows of the concatenated arrays for ``frames`` of ``clips`` (clip indices, broadcast
         together), each clamped to its clip's last frame: a lookahead past the end of a clip (the
         next frame, a goal horizon) repeats the last reference state instead of reading the next clip."""
-        clips = np.asarray(clips)
-        return np.minimum(self.starts[clips] + frames, self.starts[clips + 1] - 1)
+        clips = clips if is_tensor(clips) else np.asarray(clips)
+        return xp(self.starts).minimum(self.starts[clips] + frames, self.starts[clips + 1] - 1)
 
     def clip(self, clip) -> dict[str, np.ndarray]:
         i = self.index(clip)

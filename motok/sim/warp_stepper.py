@@ -6,9 +6,9 @@ It keeps :class:`motok.sim.steppers.Stepper`'s contract: host numpy in and out (
 float64 mirrors refreshed after every call, ``bodies()`` as float64 numpy), so the environment,
 tasks and policies run unchanged. The state itself lives on the device as torch tensors that
 alias Warp's arrays (``wp.to_torch``, no copies): ``qpos_t``, ``qvel_t``, ``ctrl_t`` and
-:meth:`bodies_tensor`, which an on-device rollout (policy, rewards, observation in torch on the
-same device; :mod:`motok.sim.obs_torch` has Eq. 7) can use without the host mirrors, with
-:meth:`step_tensor`; docs/sim.md says what stands of that path.
+:meth:`bodies_tensor`, which the on-device rollout (``env.on_device``: policy, goals, rewards,
+resets and Eq. 7 in torch on the same device) uses without the host mirrors, with
+:meth:`step_tensor` and :meth:`set_state_tensor`; docs/sim.md "On the device".
 
 Where it differs from the MuJoCo steppers, and why:
 
@@ -124,6 +124,8 @@ class WarpStepper:
     def _as(self, a):
         import torch
 
+        if isinstance(a, torch.Tensor):
+            return a.to(device=self.torch_device, dtype=self.qpos_t.dtype)
         return torch.as_tensor(np.asarray(a), dtype=self.qpos_t.dtype, device=self.torch_device)
 
     def _check(self, bad) -> None:
@@ -154,12 +156,15 @@ class WarpStepper:
         return torch.as_tensor(np.asarray(ids, dtype=np.int64), device=self.torch_device)
 
     def set_state(self, ids, qpos, qvel) -> None:
-        i = self._rows(np.atleast_1d(ids))
+        self.set_state_tensor(self._rows(np.atleast_1d(ids)), qpos, qvel)
+        self._sync(np.atleast_1d(ids))
+
+    def set_state_tensor(self, ids, qpos, qvel) -> None:
+        """:meth:`set_state` with device tensors (``ids`` int64), leaving the host mirrors alone."""
         with self._scope():
-            self.qpos_t[i], self.qvel_t[i], self._warm[i] = self._as(qpos), self._as(qvel), 0.0
+            self.qpos_t[ids], self.qvel_t[ids], self._warm[ids] = self._as(qpos), self._as(qvel), 0.0
             self._check(self._unreported)
             self._kinematics()
-        self._sync(np.atleast_1d(ids))
 
     def set_columns(self, ids, qcols, qpos, vcols, qvel) -> None:
         rows = self._rows(ids)[:, None]

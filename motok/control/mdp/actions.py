@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motok.arrays import is_tensor
 from motok.errors import UserError
 
 BASES = ("current", "reference")
@@ -31,16 +32,17 @@ class ActionConfig:
             raise UserError(f"action base must be 'current' or 'reference', not {self.base!r}")
 
 
-def residual_targets(a: np.ndarray, base: np.ndarray, scale: float) -> np.ndarray:
-    return base + scale * np.asarray(a, dtype=np.float64)
+def residual_targets(a, base, scale: float):
+    """``base + scale a``: host actions in float64 (C MuJoCo's precision), device ones as they are."""
+    return base + scale * (a if is_tensor(a) else np.asarray(a, dtype=np.float64))
 
 
-def reference_base(env, ref_qpos: np.ndarray, ref_qvel: np.ndarray) -> np.ndarray:
+def reference_base(env, ref_qpos, ref_qvel):
     """``(N, nu)`` reference hinge angles plus the velocity lead ``(kv / kp) qd_ref``."""
     return ref_qpos[:, env.hinge_adr] + env.velocity_lead * ref_qvel[:, env.hinge_dof]
 
 
-def pd_targets(cfg: ActionConfig, a: np.ndarray, env, task) -> np.ndarray:
+def pd_targets(cfg: ActionConfig, a, env, task):
     """The map named by ``cfg.base``; ``task.next_reference()`` gives ``(qpos, qvel)`` for ``reference``."""
     if cfg.base == "current":
         return residual_targets(a, env.qpos[:, env.hinge_adr], cfg.scale)

@@ -19,8 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
+from motok.arrays import xp
 from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.rewards import check_non_negative
 from motok.control.mdp.terminations import tracking_failure
@@ -34,7 +33,7 @@ def _bodies(b: Bodies, idx: list[int]) -> Bodies:
     return Bodies(b.pos[..., idx, :], b.vel[..., idx, :], b.angvel[..., idx, :], quat=b.quat[..., idx, :])
 
 
-def head_goal(sim: Bodies, ref: Bodies, head: int) -> np.ndarray:
+def head_goal(sim: Bodies, ref: Bodies, head: int):
     """``(N, K * 15)`` from sim bodies ``(N, J, .)`` and reference bodies ``(N, K, J, .)``."""
     N, K = ref.pos.shape[:2]
     # imitation_goal takes the heading from its first body: pass the root along, drop its columns.
@@ -42,11 +41,12 @@ def head_goal(sim: Bodies, ref: Bodies, head: int) -> np.ndarray:
     return g.reshape(N, K, 2, HEAD_FEATURES)[:, :, 1].reshape(N, K * HEAD_FEATURES)
 
 
-def rotation_angle(q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
-    """Angle (rad, in [0, pi]) of the rotation between unit quaternions ``(..., 4)``."""
-    w = np.abs((q * q_ref).sum(-1))
+def rotation_angle(q, q_ref):
+    """Angle (rad, in [0, pi]) of the rotation between unit quaternions ``(..., 4)`` (numpy or torch)."""
+    x = xp(q)
+    w = x.abs((q * q_ref).sum(-1))
     v = q[..., :1] * q_ref[..., 1:] - q_ref[..., :1] * q[..., 1:] - cross3(q_ref[..., 1:], q[..., 1:])
-    return 2.0 * np.arctan2(np.linalg.norm(v, axis=-1), w)  # atan2 keeps small angles accurate
+    return 2.0 * x.arctan2(x.sqrt((v * v).sum(-1)), w)  # atan2 keeps small angles accurate
 
 
 @dataclass
@@ -66,7 +66,7 @@ class HeadRewardConfig:
         check_non_negative(self, "hmd reward")
 
 
-def head_errors(sim: Bodies, ref: Bodies, head: int) -> dict[str, np.ndarray]:
+def head_errors(sim: Bodies, ref: Bodies, head: int) -> dict:
     """Squared errors ``(N,)`` of the head: position (m^2), rotation angle (rad^2), linear and
     angular velocity, from sim and reference bodies ``(N, J, .)``."""
     sq = lambda a, b: ((a[:, head] - b[:, head]) ** 2).sum(-1)  # noqa: E731
@@ -74,19 +74,21 @@ def head_errors(sim: Bodies, ref: Bodies, head: int) -> dict[str, np.ndarray]:
             "vel": sq(sim.vel, ref.vel), "angvel": sq(sim.angvel, ref.angvel)}
 
 
-def head_reward(err: dict[str, np.ndarray], cfg: HeadRewardConfig) -> dict[str, np.ndarray]:
+def head_reward(err: dict, cfg: HeadRewardConfig) -> dict:
     """``r_task = sum_k w_k exp(-k_k e_k)`` and its terms ``r_pos``, ``r_rot``, ``r_vel``, ``r_angvel``."""
     keys = ("pos", "rot", "vel", "angvel")
-    r = {f"r_{k}": np.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in keys}
+    x = xp(err["pos"])
+    r = {f"r_{k}": x.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in keys}
     r["r_task"] = sum(getattr(cfg, f"w_{k}") * r[f"r_{k}"] for k in keys)
     return r
 
 
-def head_distance(sim_pos: np.ndarray, ref_pos: np.ndarray, head: int) -> np.ndarray:
+def head_distance(sim_pos, ref_pos, head: int):
     """``(N,)`` distance (m) of the simulated head to the reference head."""
-    return np.linalg.norm(sim_pos[:, head] - ref_pos[:, head], axis=-1)
+    d = sim_pos[:, head] - ref_pos[:, head]
+    return xp(d).sqrt((d * d).sum(-1))
 
 
-def head_lost(dist: np.ndarray, threshold: float) -> np.ndarray:
+def head_lost(dist, threshold: float):
     """The HMD termination: the head more than ``threshold`` m from the reference head."""
     return tracking_failure(dist[:, None], "any", threshold)

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motok.arrays import is_tensor, like, xp
 from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.rewards import check_non_negative
 from motok.errors import UserError
@@ -56,16 +57,24 @@ def check_keyframe_count(count: int, window: int, min_gap: int, where: str = "in
                         f"window; lower num_keyframes or min_keyframe_gap_seconds, or raise window_seconds")
 
 
-def sample_keyframes(rng: np.random.Generator, n: int, count: int, window: int, min_gap: int) -> np.ndarray:
+def sample_keyframes(rng, n: int, count: int, window: int, min_gap: int):
     """``(n, count)`` keyframe offsets within a ``window``-frame window: ``0``, ``count - 2`` random
-    frames, ``window - 1``; increasing, consecutive ones at least ``min_gap`` apart.
+    frames, ``window - 1``; increasing, consecutive ones at least ``min_gap`` apart. ``rng``: numpy's
+    generator (host arrays) or a ``torch.Generator`` (tensors on its device).
 
     The interior ones are sorted uniform draws from the slack ``window - 1 - (count - 1) min_gap``,
     shifted by ``min_gap`` per rank, which keeps every gap (the last one too) >= ``min_gap``."""
     check_keyframe_count(count, window, min_gap)
     slack = window - 1 - (count - 1) * min_gap
-    mid = np.sort(rng.integers(0, slack + 1, size=(n, count - 2)), axis=1) + min_gap * np.arange(1, count - 1)
-    return np.concatenate([np.zeros((n, 1), np.int64), mid.astype(np.int64), np.full((n, 1), window - 1)], 1)
+    if isinstance(rng, np.random.Generator):
+        draws = np.sort(rng.integers(0, slack + 1, size=(n, count - 2)), axis=1).astype(np.int64)
+    else:
+        import torch
+
+        draws = torch.randint(0, slack + 1, (n, count - 2), generator=rng, device=rng.device).sort(1).values
+    x, ends = xp(draws), np.array([[0, window - 1]], dtype=np.int64).repeat(n, 0)
+    ends = like(draws, ends)
+    return x.concatenate([ends[:, :1], draws + like(draws, min_gap * np.arange(1, count - 1)), ends[:, 1:]], 1)
 
 
 def check_keyframes(keyframes: np.ndarray, window: int, where: str = "inbetween task") -> None:
@@ -79,24 +88,29 @@ def check_keyframes(keyframes: np.ndarray, window: int, where: str = "inbetween 
                         f"strictly increasing and starting at 0, got {k.tolist()}")
 
 
-def next_keyframe(keyframes: np.ndarray, t: np.ndarray) -> np.ndarray:
+def next_keyframe(keyframes, t):
     """Index of the next keyframe to reach at window offset ``t``: the first one after ``t`` (so the
     goal moves on at the frame a keyframe is reached), the last one once every keyframe is past."""
-    return np.minimum((keyframes <= t[:, None]).sum(1), keyframes.shape[1] - 1)
+    return xp(keyframes).clip((keyframes <= t[:, None]).sum(1), None, keyframes.shape[1] - 1)
 
 
-def time_encoding(tta: np.ndarray, dim: int, cap: int) -> np.ndarray:
+def time_encoding(tta, dim: int, cap: int, dtype=None):
     """Eq. 13, ``(n, dim)`` sinusoidal encoding of the frames ``tta`` until the next keyframe,
-    constant for ``tta >= cap`` (see the module docstring)."""
-    t = np.minimum(np.asarray(tta, dtype=np.float64), cap)[:, None]
-    w = np.exp(np.arange(0, dim, 2) * (-np.log(10000.0) / dim))
-    out = np.empty((len(t), dim))
-    out[:, 0::2] = np.sin(t * w)
-    out[:, 1::2] = np.cos(t * w[:dim // 2])
-    return out
+    constant for ``tta >= cap`` (see the module docstring). Host float64, or tensors of ``dtype``
+    (float32 by default) where ``tta`` is."""
+    if is_tensor(tta):
+        import torch
+
+        t = tta.clamp(max=cap).to(dtype or torch.float32)[:, None]
+    else:
+        t = np.minimum(np.asarray(tta, dtype=np.float64), cap)[:, None]
+    x = xp(t)
+    w = like(t, np.exp(np.arange(0, dim, 2) * (-np.log(10000.0) / dim)))
+    # sin and cos interleaved: E[:, 2i] = sin(t w_i), E[:, 2i + 1] = cos(t w_i); an odd dim ends on a sine.
+    return x.stack([x.sin(t * w), x.cos(t * w)], -1).reshape(len(t), -1)[:, :dim]
 
 
-def keyframe_goal(sim: Bodies, keys: Bodies) -> np.ndarray:
+def keyframe_goal(sim: Bodies, keys: Bodies):
     """Eq. 12, ``(N, K * J * 9)`` from sim bodies ``(N, J, .)`` and keyframe bodies ``(N, K, J, .)``:
     per keyframe and body the position and 6D rotation differences in the heading frame."""
     N, K, J = keys.pos.shape[:3]
@@ -120,16 +134,18 @@ class InbetweenRewardConfig:
         check_non_negative(self, "inbetween reward")
 
 
-def inbetween_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict[str, np.ndarray]:
+def inbetween_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict:
     """Eq. 14's errors ``(N,)``: mean squared hinge angle and velocity errors, mean over the end
     effectors ``ee`` of their squared (global) position errors, squared root position error."""
+    ee = list(ee)
     return {"q": ((q - q_ref) ** 2).mean(-1), "qd": ((qd - qd_ref) ** 2).mean(-1),
             "ee": ((pos[:, ee] - ref_pos[:, ee]) ** 2).sum(-1).mean(-1),
             "root": ((pos[:, 0] - ref_pos[:, 0]) ** 2).sum(-1)}
 
 
-def inbetween_reward(err: dict[str, np.ndarray], cfg: InbetweenRewardConfig) -> dict[str, np.ndarray]:
+def inbetween_reward(err: dict, cfg: InbetweenRewardConfig) -> dict:
     """Eq. 14: ``r_task = sum_k w_k exp(-k_k e_k)`` and its unweighted terms ``r_q``, ``r_qd``, ``r_ee``, ``r_root``."""
-    r = {f"r_{k}": np.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("q", "qd", "ee", "root")}
+    x = xp(err["q"])
+    r = {f"r_{k}": x.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("q", "qd", "ee", "root")}
     r["r_task"] = sum(getattr(cfg, f"w_{k}") * r[f"r_{k}"] for k in ("q", "qd", "ee", "root"))
     return r

@@ -22,37 +22,44 @@ from __future__ import annotations
 
 import numpy as np
 
+from motok.arrays import is_tensor, xp
 from motok.control.mdp.terminations import fell
 from motok.errors import UserError
 from motok.rotations import quat_to_matrix
 from motok.sim.obs import heading, unyaw
 
 
-def root_heading(root_quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _f64(a):
+    """Host inputs as float64 arrays (lists allowed); device tensors as they are (their precision)."""
+    return a if is_tensor(a) else np.asarray(a, dtype=np.float64)
+
+
+def root_heading(root_quat):
     """Cosine and sine ``(N,)`` of the yaw of the root's forward (+X) axis, from MuJoCo ``(w, x, y, z)``
     quaternions ``(N, 4)`` or rotation matrices ``(N, 3, 3)`` (what ``Bodies.rot`` holds for free)."""
-    q = np.asarray(root_quat, dtype=np.float64)
-    return heading(q if q.shape[-2:] == (3, 3) else quat_to_matrix(q))
+    q = _f64(root_quat)
+    return heading(q if tuple(q.shape[-2:]) == (3, 3) else quat_to_matrix(q))
 
 
-def planar_distance(root_pos: np.ndarray, target: np.ndarray) -> np.ndarray:
+def planar_distance(root_pos, target):
     """``(N,)`` floor distance from the root (``(N, >= 2)``, world) to the target ``(N, 2)``."""
-    return np.hypot(*(np.asarray(target) - np.asarray(root_pos)[:, :2]).T)
+    d = _f64(target) - _f64(root_pos)[:, :2]
+    return xp(d).hypot(d[:, 0], d[:, 1])
 
 
-def heading_frame_target(root_pos: np.ndarray, root_quat: np.ndarray, target: np.ndarray) -> np.ndarray:
+def heading_frame_target(root_pos, root_quat, target):
     """Eq. 15, ``(N, 2)``: ``target - root_xy`` turned by minus the root's heading.
 
     ``+x`` is ahead of the character and ``+y`` on its left (MuJoCo: Z up, facing +X at rest), so
     a root yawed by +90 degrees (facing world +Y) sees a target 3 m along world +X at ``(0, -3)``,
     on its right."""
     c, s = root_heading(root_quat)
-    disp = np.asarray(target, dtype=np.float64) - np.asarray(root_pos)[:, :2]
-    return unyaw(c, s, np.concatenate([disp, np.zeros((len(disp), 1))], -1))[:, :2]
+    disp = _f64(target) - _f64(root_pos)[:, :2]
+    x = xp(disp)
+    return unyaw(c, s, x.concatenate([disp, x.zeros_like(disp[:, :1])], -1))[:, :2]
 
 
-def navigation_reward(root_pos: np.ndarray, root_vel: np.ndarray, root_quat: np.ndarray, target: np.ndarray,
-                      cfg) -> dict[str, np.ndarray]:
+def navigation_reward(root_pos, root_vel, root_quat, target, cfg) -> dict:
     """Eq. 16: ``{"r_task", "r_pos", "r_vel"}``, each ``(N,)``.
 
     ``root_pos``/``root_vel`` world ``(N, 3)`` (only x, y are used), ``root_quat`` ``(N, 4)``
@@ -62,32 +69,38 @@ def navigation_reward(root_pos: np.ndarray, root_vel: np.ndarray, root_quat: np.
     ``v = (max(0, vel . h) h) . (target - root) / d`` with ``h`` the unit heading: the speed
     toward the target of the forward part of the root's planar velocity (the fork's form)."""
     c, s = root_heading(root_quat)
-    disp = np.asarray(target, dtype=np.float64) - np.asarray(root_pos)[:, :2]
-    d = np.hypot(disp[:, 0], disp[:, 1])
-    vel = np.asarray(root_vel)
-    forward = np.maximum(c * vel[:, 0] + s * vel[:, 1], 0.0)
+    disp = _f64(target) - _f64(root_pos)[:, :2]
+    x = xp(disp)
+    d = x.hypot(disp[:, 0], disp[:, 1])
+    vel = _f64(root_vel)
+    forward = x.clip(c * vel[:, 0] + s * vel[:, 1], 0.0, None)
     # At d = 0 the direction is undefined; the velocity term is 1 there anyway (within the radius).
-    toward = forward * (c * disp[:, 0] + s * disp[:, 1]) / np.maximum(d, 1e-9)
+    toward = forward * (c * disp[:, 0] + s * disp[:, 1]) / x.clip(d, 1e-9, None)
     near = d < cfg.reach_radius
-    r_pos = np.exp(-cfg.k_pos * d * d)
-    r_vel = np.where(near, 1.0, np.exp(-np.maximum(cfg.speed - toward, 0.0) ** 2))
+    r_pos = x.exp(-cfg.k_pos * d * d)
+    r_vel = x.where(near, 1.0, x.exp(-x.clip(cfg.speed - toward, 0.0, None) ** 2))
     return {"r_task": cfg.w_pos * r_pos + cfg.w_vel * r_vel, "r_pos": r_pos, "r_vel": r_vel}
 
 
-def sample_targets(root_xy: np.ndarray, rng: np.random.Generator, min_dist: float, max_dist: float) -> np.ndarray:
+def sample_targets(root_xy, rng, min_dist: float, max_dist: float):
     """``(N, 2)`` targets around ``root_xy`` ``(N, >= 2)``: direction uniform on the circle, distance
-    uniform in ``[min_dist, max_dist]`` m (the fork's draw; the paper says only "within 10 m")."""
+    uniform in ``[min_dist, max_dist]`` m (the fork's draw; the paper says only "within 10 m").
+    ``rng``: numpy's generator for host arrays, a ``torch.Generator`` on the device for tensors."""
     if not 0.0 <= min_dist <= max_dist:
         raise UserError(f"target distances need 0 <= min_dist <= max_dist, got min_dist={min_dist}, "
                         f"max_dist={max_dist}")
-    root_xy = np.asarray(root_xy, dtype=np.float64)[:, :2]
-    u = rng.random((len(root_xy), 2))
+    root_xy = _f64(root_xy)[:, :2]
+    x = xp(root_xy)
+    if x is np:
+        u = rng.random((len(root_xy), 2))
+    else:
+        u = x.rand((len(root_xy), 2), generator=rng, device=root_xy.device, dtype=root_xy.dtype)
     angle, dist = 2.0 * np.pi * u[:, 0], min_dist + (max_dist - min_dist) * u[:, 1]
-    return root_xy + dist[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+    return root_xy + dist[:, None] * x.stack([x.cos(angle), x.sin(angle)], -1)
 
 
-def head_fell(head_height: np.ndarray, steps: np.ndarray, min_height: float) -> np.ndarray:
+def head_fell(head_height, steps, min_height: float):
     """``(N,)``: the head below ``min_height`` m, from the second control step of an episode on
     (``steps`` counts the steps since the reset, 1 on the first): a reference start state can
     still be settling onto the floor during its first step (the fork's grace step)."""
-    return fell(np.asarray(head_height), min_height) & (np.asarray(steps) > 1)
+    return fell(_f64(head_height), min_height) & (steps > 1 if is_tensor(steps) else np.asarray(steps) > 1)

@@ -14,8 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
+from motok.arrays import xp
 from motok.errors import UserError
 
 
@@ -34,16 +33,18 @@ class ImitationConfig:
     k_ee: float = 40.0
 
 
-def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict[str, np.ndarray]:
+def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict:
     """Squared errors ``(N,)`` of body positions ``(N, J, 3)`` (root = body 0), hinge angles and
-    velocities ``(N, H)`` and end effectors ``ee`` (body indices, root-relative)."""
+    velocities ``(N, H)`` and end effectors ``ee`` (body indices, root-relative); numpy or torch."""
+    ee = list(ee)
     rel, rel_ref = pos[:, ee] - pos[:, :1], ref_pos[:, ee] - ref_pos[:, :1]
     return {"root": ((pos[:, 0] - ref_pos[:, 0]) ** 2).sum(-1), "q": ((q - q_ref) ** 2).sum(-1),
             "alpha": ((qd - qd_ref) ** 2).mean(-1), "ee": ((rel - rel_ref) ** 2).sum(-1).sum(-1)}
 
 
-def imitation_reward(err: dict[str, np.ndarray], cfg: ImitationConfig) -> dict[str, np.ndarray]:
+def imitation_reward(err: dict, cfg: ImitationConfig) -> dict:
     """Eq. 10: ``r_im = exp(-10 e_root) exp(-2 e_q) exp(-0.5 e_alpha) exp(-40 e_ee)`` and its factors."""
-    r = {f"r_{k}": np.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("root", "q", "alpha", "ee")}
+    x = xp(err["root"])
+    r = {f"r_{k}": x.exp(-getattr(cfg, f"k_{k}") * err[k]) for k in ("root", "q", "alpha", "ee")}
     r["r_im"] = r["r_root"] * r["r_q"] * r["r_alpha"] * r["r_ee"]
     return r

@@ -10,6 +10,9 @@ A task is any object with
 
 There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
 episodes) and then calls ``reset(ids)`` for the finished environments.
+
+With an ``on_device`` environment everything crossing this interface (ids, actions, observations,
+goals, rewards, masks) is a torch tensor on the physics device.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from motok.arrays import is_tensor, like
 from motok.sim.env import HumanoidEnv
 
 ActionMap = Callable[[np.ndarray, HumanoidEnv, "Task"], np.ndarray]  # (actions, env, task) -> PD targets
@@ -57,9 +61,13 @@ class TaskEnv:
     def reset(self, ids=None, **where) -> tuple[np.ndarray, np.ndarray]:
         """Start new episodes in ``ids`` (all by default); returns the full ``(obs, goal)`` arrays."""
         N = self.num_envs
-        ids = np.arange(N) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
-        if ids.size and (ids.min() < 0 or ids.max() >= N):
-            raise IndexError(f"environment ids must be in 0..{N - 1}, got {ids.tolist()}")
+        if self.env.on_device:  # ids from the rollout itself (device tensors): not checked on the host
+            q = self.env.qpos
+            ids = like(q, np.arange(N)) if ids is None else ids if is_tensor(ids) else like(q, np.atleast_1d(ids))
+        else:
+            ids = np.arange(N) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
+            if ids.size and (ids.min() < 0 or ids.max() >= N):
+                raise IndexError(f"environment ids must be in 0..{N - 1}, got {ids.tolist()}")
         if not self._started and len(ids) != N:
             self.reset()  # every environment needs an episode before a subset can be restarted
         self._started = True
@@ -70,9 +78,9 @@ class TaskEnv:
         """Start a control step (physics on a worker thread when ``threaded``); :meth:`finish` ends it."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        a = np.asarray(actions)
+        a = actions if is_tensor(actions) else np.asarray(actions)
         if a.ndim < 1 or len(a) != self.num_envs:
-            raise ValueError(f"actions must have {self.num_envs} rows, got shape {a.shape}")
+            raise ValueError(f"actions must have {self.num_envs} rows, got shape {tuple(a.shape)}")
         self.env.launch(self.action_map(a, self.env, self.task), threaded)
 
     def finish(self):

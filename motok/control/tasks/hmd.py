@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from motok.arrays import copy, is_tensor, like, xp
 from motok.control.mdp.head import HEAD_FEATURES, HeadRewardConfig, head_distance, head_errors, head_goal, \
     head_lost, head_reward
-from motok.control.mdp.resets import (check_rate, check_start_frames, given_starts, reference_bodies, reference_state,
-                                      sample_starts)
+from motok.control.mdp.resets import (ClipProbabilities, check_rate, check_start_frames, given_starts, host_lengths,
+                                      reference_bodies, reference_state, sample_starts)
 from motok.control.mdp.terminations import body_distances, end_of_step
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
@@ -48,26 +49,29 @@ class HMDTaskConfig:
 
 class HMDTask:
     """Episode state per environment: ``clip``, ``start``, ``frame`` (the reference frame the
-    simulation is at), ``steps``, ``limit``; ``head`` is the tracked body (the skeleton's head)."""
+    simulation is at), ``steps``, ``limit``; ``head`` is the tracked body (the skeleton's head).
+    Device tensors with an on-device environment and library (as the imitation task)."""
 
     reward_key = "r_task"
+    clip_p = ClipProbabilities()  # start-clip probabilities (None: by usable length)
 
-    def __init__(self, cfg: HMDTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
+    def __init__(self, cfg: HMDTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):
         check_rate(lib, env.control_hz)
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
-        N = env.num_envs
+        N, S = env.num_envs, lib.starts
         self.max_steps = max(1, int(round(cfg.episode_seconds * env.control_hz)))
         self.head = int(env.hum.skeleton.head)
         self.goal_dim = cfg.goal_frames * HEAD_FEATURES
-        self.clip, self.start, self.frame = (np.zeros(N, dtype=np.int64) for _ in range(3))
-        self.steps, self.limit = np.zeros(N, dtype=np.int64), np.ones(N, dtype=np.int64)
-        self._goal = np.zeros((N, self.goal_dim))
-        self.clip_p: np.ndarray | None = None  # start-clip probabilities (None: by usable length)
+        i64 = lambda v: like(S, np.full(N, v, dtype=np.int64))  # noqa: E731
+        self.clip, self.start, self.frame, self.steps, self.limit = i64(0), i64(0), i64(0), i64(0), i64(1)
+        self._goal = like(lib.qpos, np.zeros((N, self.goal_dim)))
+        self._window = like(S, np.arange(cfg.goal_frames + 1))  # the frame reached and the K ahead
+        self._host_lengths = host_lengths(lib)  # to check given starts on the host
 
-    def _ahead(self, ids) -> np.ndarray:
-        return self.frame[ids, None] + np.arange(1, self.cfg.goal_frames + 1)
+    def _ahead(self, ids):
+        return self.frame[ids, None] + self._window[1:]
 
-    def reset(self, ids: np.ndarray, clips=None, frames=None) -> None:
+    def reset(self, ids, clips=None, frames=None) -> None:
         """Random clips (by ``clip_p``) and start frames leaving a whole episode from the task's
         generator, unless ``clips``/``frames`` (names or indices; frame 0 by default) are given."""
         K, L = self.cfg.goal_frames, self.lib
@@ -75,39 +79,41 @@ class HMDTask:
             c, f = sample_starts(L, len(ids), self.rng, self.max_steps + K, self.clip_p)
         else:
             c, f = given_starts(L, clips, frames, len(ids))
-        check_start_frames(L, c, f, K)
+        if not is_tensor(c):  # host draws and given starts; a device draw gives no weight to too-short clips
+            check_start_frames(L, c, f, K, self._host_lengths)
+            c, f = like(L.starts, c), like(L.starts, f)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.start[ids], self.frame[ids], self.steps[ids] = c, f, f, 0
         # The last step's goal still reads K real frames ahead: frame + K <= the clip's last frame.
-        self.limit[ids] = np.minimum(self.max_steps, L.lengths[c] - 1 - f - K)
+        self.limit[ids] = xp(f).clip(L.lengths[c] - 1 - f - K, None, self.max_steps)
         ahead = reference_bodies(L, self.clip[ids, None], self._ahead(ids))
         self._goal[ids] = head_goal(self.env.bodies.take(ids), ahead, self.head)
 
-    def goal(self) -> np.ndarray:
-        return self._goal.copy()
+    def goal(self):
+        return copy(self._goal)
 
     def markers(self) -> np.ndarray:
         """``(N, 1, 3)`` the reference head at the current frame (world), for videos."""
-        return self.lib.body_pos[self.lib.frame_index(self.clip, self.frame), self.head][:, None]
+        m = self.lib.body_pos[self.lib.frame_index(self.clip, self.frame), self.head][:, None]
+        return m.cpu().numpy() if is_tensor(m) else m
 
-    def next_reference(self) -> tuple[np.ndarray, np.ndarray]:
+    def next_reference(self):
         """``(qpos, qvel)`` of the reference frame the coming step should reach (the action base)."""
         g = self.lib.frame_index(self.clip, self.frame + 1)
         return self.lib.qpos[g], self.lib.qvel[g]
 
-    def update(self, diverged: np.ndarray, invalid: np.ndarray):
+    def update(self, diverged, invalid):
         env, c = self.env, self.cfg
         self.frame += 1
         self.steps += 1
-        N = env.num_envs
-        refs = reference_bodies(self.lib, self.clip[:, None], self.frame[:, None] + np.arange(c.goal_frames + 1))
+        refs = reference_bodies(self.lib, self.clip[:, None], self.frame[:, None] + self._window)
         sim, ref = env.bodies, refs.take((slice(None), 0))
         dist = head_distance(sim.pos, ref.pos, self.head)
-        lost = head_lost(dist, c.termination_distance) if c.early_termination else np.zeros(N, dtype=bool)
+        lost = head_lost(dist, c.termination_distance) if c.early_termination else xp(dist).zeros_like(diverged)
         rewards, terminated, truncated = end_of_step(head_reward(head_errors(sim, ref, self.head), c.reward), lost,
                                                      diverged, invalid, self.steps, self.limit)
         self._goal = head_goal(sim, refs.take((slice(None), slice(1, None))), self.head)
-        info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "head_error": dist,
+        info = {"clip": copy(self.clip), "frame": copy(self.frame), "head_error": dist,
                 "mean_body_error": body_distances(sim, ref).mean(-1), "head_lost": lost, "diverged": diverged,
-                "invalid_action": invalid, "episode_steps": self.steps.copy()}
+                "invalid_action": invalid, "episode_steps": copy(self.steps)}
         return rewards, terminated, truncated, info

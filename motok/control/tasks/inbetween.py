@@ -29,11 +29,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from motok.arrays import copy, is_tensor, like, take_along, xp
 from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfig, check_keyframe_count,
                                          check_keyframes, inbetween_errors, inbetween_reward,
                                          keyframe_goal, next_keyframe, sample_keyframes,
                                          time_encoding)
-from motok.control.mdp.resets import check_rate, given_starts, reference_bodies, reference_state, sample_starts
+from motok.control.mdp.resets import (ClipProbabilities, check_rate, given_starts, host_lengths, reference_bodies,
+                                      reference_state, sample_starts)
 from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
@@ -78,35 +80,36 @@ class InbetweenTask:
     """Episode state per environment: ``clip``, ``start`` (the window's first frame), ``frame`` (the
     reference frame the simulation is at), ``steps``, ``limit`` (steps to the last keyframe),
     ``keyframes`` ``(N, K)`` (clip frames, for renderers too) and ``target`` (index of the next
-    keyframe to reach)."""
+    keyframe to reach). Device tensors with an on-device environment and library (as imitation)."""
 
     reward_key = "r_task"
+    clip_p = ClipProbabilities()  # start-clip probabilities (None: by usable length)
 
-    def __init__(self, cfg: InbetweenTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
+    def __init__(self, cfg: InbetweenTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):
         check_rate(lib, env.control_hz)
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
-        N = env.num_envs
+        N, S = env.num_envs, lib.starts
         self.window = max(2, int(round(cfg.window_seconds * env.control_hz)))
         self.min_gap = int(round(cfg.min_keyframe_gap_seconds * env.control_hz))
         for k in (cfg.num_keyframes, cfg.eval_keyframes):
             check_keyframe_count(k, self.window, self.min_gap)
         self._key_dim = 2 * len(env.hum.skeleton.joints) * KEYFRAME_FEATURES
         self.goal_dim = self._key_dim + (cfg.time_encoding_dim if cfg.time_encoding == "concat" else 0)
-        self.clip, self.start, self.frame = (np.zeros(N, dtype=np.int64) for _ in range(3))
-        self.steps, self.limit, self.target = np.zeros(N, dtype=np.int64), np.ones(N, dtype=np.int64), \
-            np.ones(N, dtype=np.int64)
+        i64 = lambda v: like(S, np.full(N, v, dtype=np.int64))  # noqa: E731
+        self.clip, self.start, self.frame, self.steps, self.limit, self.target = (i64(v) for v in (0, 0, 0, 0, 1, 1))
         self.set_keyframe_count(cfg.num_keyframes)
-        self._goal = np.zeros((N, self.goal_dim))
-        self.clip_p: np.ndarray | None = None  # start-clip probabilities (None: by usable length)
+        self._goal = like(lib.qpos, np.zeros((N, self.goal_dim)))
+        self._host_lengths = host_lengths(lib)  # to check given starts on the host
 
     def set_keyframe_count(self, count: int) -> None:
         """Keyframes per window from now on (e.g. ``cfg.eval_keyframes``); every environment must be
         reset afterwards. The goal does not depend on it."""
         check_keyframe_count(count, self.window, self.min_gap)
         self.num_keyframes = int(count)
-        self.keyframes = np.tile(np.arange(self.num_keyframes, dtype=np.int64), (self.env.num_envs, 1))
+        self.keyframes = like(self.lib.starts, np.tile(np.arange(self.num_keyframes, dtype=np.int64),
+                                                       (self.env.num_envs, 1)))
 
-    def reset(self, ids: np.ndarray, clips=None, frames=None, keyframes=None) -> None:
+    def reset(self, ids, clips=None, frames=None, keyframes=None) -> None:
         """Random clips (by ``clip_p``), window starts and keyframes from the task's generator, unless
         ``clips``/``frames`` (names or indices; window start, 0 by default) or ``keyframes`` (offsets
         within the window, ``(len(ids), num_keyframes)``, starting at 0) are given."""
@@ -123,10 +126,14 @@ class InbetweenTask:
             if off.shape != (n, K):
                 raise UserError(f"inbetween task: keyframes must have shape ({n}, {K}), got {off.shape}")
             check_keyframes(off, T)
-        bad = (f < 0) | (f + off[:, -1] > L.lengths[c] - 1)
-        if bad.any():
-            raise UserError(f"inbetween task: windows from frames {f[bad].tolist()} run past their clips' ends "
-                            f"(keyframes to offset {off[bad, -1].tolist()}, clip lengths {L.lengths[c[bad]].tolist()})")
+        if not is_tensor(c) or not is_tensor(off):  # given or host windows; device draws fit by construction
+            c, f, off = (v.cpu().numpy() if is_tensor(v) else v for v in (c, f, off))
+            lengths = self._host_lengths
+            bad = (f < 0) | (f + off[:, -1] > lengths[c] - 1)
+            if bad.any():
+                raise UserError(f"inbetween task: windows from frames {f[bad].tolist()} run past their clips' ends "
+                                f"(keyframes to offset {off[bad, -1].tolist()}, clip lengths {lengths[c[bad]].tolist()})")
+            c, f, off = like(L.starts, c), like(L.starts, f), like(L.starts, off)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.start[ids], self.frame[ids], self.steps[ids] = c, f, f, 0
         self.keyframes[ids] = f[:, None] + off
@@ -139,19 +146,20 @@ class InbetweenTask:
         keys = self.keyframes[ids]
         nxt = next_keyframe(keys - self.start[ids, None], t)
         self.target[ids] = nxt
-        pair = np.stack([nxt, np.minimum(nxt + 1, self.num_keyframes - 1)] if c.goal_keyframes == "next"
-                        else [nxt - 1, nxt], 1)
+        x = xp(keys)
+        pair = x.stack([nxt, x.clip(nxt + 1, None, self.num_keyframes - 1)] if c.goal_keyframes == "next"
+                       else [nxt - 1, nxt], 1)
         g = keyframe_goal(self.env.bodies.take(ids), reference_bodies(self.lib, self.clip[ids, None],
-                                                                      np.take_along_axis(keys, pair, 1)))
+                                                                      take_along(keys, pair, 1)))
         if c.time_encoding != "none":
-            tta = np.maximum(keys[np.arange(len(nxt)), nxt] - self.frame[ids], 0)
+            tta = x.clip(take_along(keys, nxt[:, None], 1)[:, 0] - self.frame[ids], 0, None)
             dim = self._key_dim if c.time_encoding == "add" else c.time_encoding_dim
-            enc = time_encoding(tta, dim, max(self.window - 4, 0))
-            g = g + enc if c.time_encoding == "add" else np.concatenate([g, enc], 1)
+            enc = time_encoding(tta, dim, max(self.window - 4, 0), g.dtype if is_tensor(g) else None)
+            g = g + enc if c.time_encoding == "add" else x.concatenate([g, enc], 1)
         self._goal[ids] = g
 
-    def goal(self) -> np.ndarray:
-        return self._goal.copy()
+    def goal(self):
+        return copy(self._goal)
 
     def keyframe_bodies(self) -> Bodies:
         """Reference bodies ``(N, K, J, .)`` of every environment's keyframes."""
@@ -159,32 +167,33 @@ class InbetweenTask:
 
     def markers(self) -> np.ndarray:
         """``(N, J, 3)`` world body positions of the next keyframe to reach, for videos."""
-        g = self.lib.frame_index(self.clip, self.keyframes[np.arange(self.env.num_envs), self.target])
-        return self.lib.body_pos[g]
+        g = self.lib.frame_index(self.clip, take_along(self.keyframes, self.target[:, None], 1)[:, 0])
+        m = self.lib.body_pos[g]
+        return m.cpu().numpy() if is_tensor(m) else m
 
-    def next_reference(self) -> tuple[np.ndarray, np.ndarray]:
+    def next_reference(self):
         """``(qpos, qvel)`` of the reference frame the coming step should reach (the action base)."""
         g = self.lib.frame_index(self.clip, self.frame + 1)
         return self.lib.qpos[g], self.lib.qvel[g]
 
-    def update(self, diverged: np.ndarray, invalid: np.ndarray):
+    def update(self, diverged, invalid):
         env, L, c = self.env, self.lib, self.cfg
         self.frame += 1
         self.steps += 1
-        N = env.num_envs
         g = L.frame_index(self.clip, self.frame)
         sim, ref = env.bodies, reference_bodies(L, self.clip, self.frame)
         err = inbetween_errors(sim.pos, ref.pos, env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:], L.qvel[g, 6:],
                                env.end_effectors)
         dist = body_distances(sim, ref)
+        x = xp(dist)
         fell = tracking_failure(dist, c.termination, c.termination_distance) if c.early_termination \
-            else np.zeros(N, dtype=bool)
+            else x.zeros_like(diverged)
         rewards, terminated, truncated = end_of_step(inbetween_reward(err, c.reward), fell, diverged, invalid,
                                                      self.steps, self.limit)
         hit = self.keyframes[:, 1:] == self.frame[:, None]  # the start keyframe is no target
-        info = {"clip": self.clip.copy(), "frame": self.frame.copy(), "at_keyframe": hit.any(1),
-                "keyframe_index": np.where(hit.any(1), hit.argmax(1) + 1, -1),
-                "max_body_error": dist.max(-1), "mean_body_error": dist.mean(-1), "diverged": diverged,
-                "invalid_action": invalid, "episode_steps": self.steps.copy()}
+        info = {"clip": copy(self.clip), "frame": copy(self.frame), "at_keyframe": hit.any(1),
+                "keyframe_index": x.where(hit.any(1), (hit * 1).argmax(1) + 1, -1),
+                "max_body_error": x.amax(dist, -1), "mean_body_error": dist.mean(-1), "diverged": diverged,
+                "invalid_action": invalid, "episode_steps": copy(self.steps)}
         self._refresh_goal(slice(None))
         return rewards, terminated, truncated, info

@@ -22,9 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motok.arrays import copy, is_tensor, like, xp
 from motok.control.mdp.navigation import (head_fell, heading_frame_target, navigation_reward, planar_distance,
                                           sample_targets)
-from motok.control.mdp.resets import reference_state, sample_starts
+from motok.control.mdp.resets import host_lengths, reference_state, sample_starts
 from motok.control.mdp.terminations import end_of_step
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
@@ -72,28 +73,32 @@ def head_index(skeleton, name: str | None = None) -> int:
 class NavigationTask:
     """Episode state per environment: ``target`` ``(N, 2)`` (world xy, for renderers too),
     ``steps`` since the reset, ``target_steps`` since the target appeared, ``target_index``
-    within the episode, ``reached_step`` (first ``target_steps`` within the radius, -1: not yet)."""
+    within the episode, ``reached_step`` (first ``target_steps`` within the radius, -1: not yet).
+
+    With an ``on_device`` environment, a library moved to its device and a ``torch.Generator``
+    there, the episode state and every term are device tensors (:mod:`motok.arrays`); new targets
+    are then drawn for every environment and kept where one is due, so no mask is read on the host."""
 
     goal_dim = 2
     reward_key = "r_task"
 
-    def __init__(self, cfg: NavigationTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng: np.random.Generator):
+    def __init__(self, cfg: NavigationTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
-        N = env.num_envs
+        N, S = env.num_envs, lib.starts
         self.max_steps = max(1, int(round(cfg.episode_seconds * env.control_hz)))
         self.retarget_steps = max(1, int(round(cfg.retarget_seconds * env.control_hz)))
         self.head = head_index(env.hum.skeleton, cfg.head_body)
-        self.target = np.zeros((N, 2))
-        self.steps, self.target_steps = np.zeros(N, dtype=np.int64), np.zeros(N, dtype=np.int64)
-        self.target_index, self.reached_step = np.zeros(N, dtype=np.int64), np.full(N, -1, dtype=np.int64)
-        self.clip, self.frame = np.zeros(N, dtype=np.int64), np.zeros(N, dtype=np.int64)  # the start states
-        self._goal = np.zeros((N, 2))
+        i64 = lambda v: like(S, np.full(N, v, dtype=np.int64))  # noqa: E731
+        self.target = like(env.bodies.pos, np.zeros((N, 2)))
+        self.steps, self.target_steps, self.target_index, self.reached_step = i64(0), i64(0), i64(0), i64(-1)
+        self.clip, self.frame = i64(0), i64(0)  # the start states
+        self._goal = like(env.bodies.pos, np.zeros((N, 2)))
 
     def _refresh_goal(self, ids) -> None:
         b = self.env.bodies
         self._goal[ids] = heading_frame_target(b.pos[ids, 0], b.rot[ids, 0], self.target[ids])
 
-    def _new_targets(self, ids: np.ndarray) -> None:
+    def _new_targets(self, ids) -> None:
         self.target[ids] = sample_targets(self.env.bodies.pos[ids, 0, :2], self.rng, self.cfg.min_distance,
                                           self.cfg.max_distance)
         self.target_steps[ids], self.reached_step[ids] = 0, -1
@@ -105,47 +110,52 @@ class NavigationTask:
         xy = np.asarray(xy, dtype=np.float64)
         if xy.shape != (len(ids), 2) or not np.isfinite(xy).all():
             raise UserError(f"targets must be finite with shape ({len(ids)}, 2), got {xy.shape}")
-        self.target[ids] = xy
+        ids = like(self.steps, ids)
+        self.target[ids] = like(self.target, xy)
         self.target_steps[ids], self.reached_step[ids] = 0, -1
         self._refresh_goal(ids)
 
-    def reset(self, ids: np.ndarray, clips=None, frames=None) -> None:
+    def reset(self, ids, clips=None, frames=None) -> None:
         """Reference starts at random clips and frames from the task's generator, unless
         ``clips``/``frames`` (names or indices; frame 0 by default) are given; then a first target."""
         L = self.lib
         if clips is None:
             c, f = sample_starts(L, len(ids), self.rng, 1)
         else:
-            c = np.array([L.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), ids.shape)],
-                         dtype=np.int64)
-            f = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), ids.shape).copy()
-            bad = (f < 0) | (f >= L.lengths[c])
+            n = len(ids)
+            c = np.array([L.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))], dtype=np.int64)
+            f = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()
+            lengths = host_lengths(L)
+            bad = (f < 0) | (f >= lengths[c])
             if bad.any():
                 raise UserError(f"navigation task: start frames {f[bad].tolist()} are outside their clips "
-                                f"(lengths {L.lengths[c[bad]].tolist()})")
+                                f"(lengths {lengths[c[bad]].tolist()})")
+            c, f = like(L.starts, c), like(L.starts, f)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.frame[ids], self.steps[ids], self.target_index[ids] = c, f, 0, 0
         self._new_targets(ids)
         self._refresh_goal(ids)
 
-    def goal(self) -> np.ndarray:
-        return self._goal.copy()
+    def goal(self):
+        return copy(self._goal)
 
     def markers(self) -> np.ndarray:
         """``(N, 1, 3)``: each target as a point just above the floor, for videos."""
-        return np.concatenate([self.target, np.full((len(self.target), 1), 0.1)], 1)[:, None]
+        t = self.target.cpu().numpy() if is_tensor(self.target) else self.target
+        return np.concatenate([t, np.full((len(t), 1), 0.1)], 1)[:, None]
 
-    def update(self, diverged: np.ndarray, invalid: np.ndarray):
+    def update(self, diverged, invalid):
         env, c = self.env, self.cfg
         self.steps += 1
         self.target_steps += 1
         b = env.bodies
+        x = xp(b.pos)
         root, rot = b.pos[:, 0], b.rot[:, 0]  # matrices: no quaternion conversion of every body
         dist = planar_distance(root, self.target)
         reached = dist < c.reach_radius
-        self.reached_step = np.where(reached & (self.reached_step < 0), self.target_steps, self.reached_step)
+        self.reached_step = x.where(reached & (self.reached_step < 0), self.target_steps, self.reached_step)
         fell = head_fell(b.pos[:, self.head, 2], self.steps, c.fall_height) if c.early_termination \
-            else np.zeros(env.num_envs, dtype=bool)
+            else x.zeros_like(reached)
         rewards, terminated, truncated = end_of_step(navigation_reward(root, b.vel[:, 0], rot, self.target, c), fell,
                                                      diverged, invalid, self.steps, self.max_steps)
         ended = terminated | truncated
@@ -153,14 +163,21 @@ class NavigationTask:
         dt = env.dt
         got = self.reached_step >= 0
         info = {"distance": dist, "reached": reached, "target_time": self.target_steps * dt,
-                "target_index": self.target_index.copy(), "target_reached": got,
-                "time_to_reach": np.where(got, self.reached_step * dt, np.nan),
+                "target_index": copy(self.target_index), "target_reached": got,
+                "time_to_reach": x.where(got, self.reached_step * dt, float("nan")),
                 "target_ends": retarget | ended,  # this step was the target's last (for evaluation)
-                "root_speed": np.hypot(b.vel[:, 0, 0], b.vel[:, 0, 1]), "fell": fell,
-                "diverged": diverged, "invalid_action": invalid, "episode_steps": self.steps.copy()}
-        ids = np.flatnonzero(retarget)
-        if len(ids):
-            self._new_targets(ids)
-            self.target_index[ids] += 1
+                "root_speed": x.hypot(b.vel[:, 0, 0], b.vel[:, 0, 1]), "fell": fell,
+                "diverged": diverged, "invalid_action": invalid, "episode_steps": copy(self.steps)}
+        if x is np:
+            ids = np.flatnonzero(retarget)
+            if len(ids):
+                self._new_targets(ids)
+                self.target_index[ids] += 1
+        else:  # drawn for all, kept where due: the mask never goes to the host
+            new = sample_targets(root[:, :2], self.rng, c.min_distance, c.max_distance)
+            self.target = x.where(retarget[:, None], new, self.target)
+            self.target_steps = x.where(retarget, 0, self.target_steps)
+            self.reached_step = x.where(retarget, -1, self.reached_step)
+            self.target_index = self.target_index + retarget.to(self.target_index.dtype)
         self._refresh_goal(slice(None))
         return rewards, terminated, truncated, info

@@ -253,3 +253,44 @@ def test_plot_curves_second_axis(tmp_path):
     recs[5]["wall_s"] = 0.0
     with pytest.raises(ValueError, match="must grow"):
         plot_curves(recs, tmp_path / "bad.png", ["success"], "samples", x2="wall_s")
+
+
+def test_several_runs_share_the_subplots(tmp_path):
+    """Two runs on one figure: each subplot draws one curve per run that has the key (a continuous
+    prior has no code usage), in the run's own colour, with a legend; a second axis (speed differs
+    between runs) and unnamed or same-named outputs are refused; the command takes several runs."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+    from motok.render.plot import _figure, plot_run
+
+    a = [{"samples": 4096 * i, "eval_success": i / 10, "code_usage": 0.5} for i in range(1, 9)]
+    b = [{"samples": 4096 * i, "eval_success": i / 20} for i in range(1, 12)]
+    fig = _figure({"hybrid": a, "continuous": b}, ["eval_success", "code_usage"], "samples")
+    succ, usage = fig.axes[:2]
+    assert [ln.get_label() for ln in succ.get_lines()] == ["hybrid", "continuous"]
+    assert [len(ln.get_xdata()) for ln in succ.get_lines()] == [8, 11]
+    assert succ.get_lines()[0].get_color() != succ.get_lines()[1].get_color()
+    assert [ln.get_label() for ln in usage.get_lines()] == ["hybrid"] and succ.get_legend() is not None
+    with pytest.raises(ValueError, match="single run"):
+        _figure({"a": a, "b": b}, ["eval_success"], "samples", x2="samples")
+    with pytest.raises(ValueError, match="no metric 'r_im'"):
+        _figure({"a": a, "b": b}, ["r_im"], "samples")
+    runs = []
+    for name, recs in (("prior_hybrid", a), ("prior_continuous", b)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in recs) + "\n")
+        runs.append(tmp_path / name)
+    with pytest.raises(ValueError, match="-o/--out"):
+        plot_run(runs)
+    with pytest.raises(ValueError, match="one --label per run"):
+        plot_run(runs, tmp_path / "x.png", labels=["one"])
+    r = CliRunner().invoke(app, ["--quiet", "plot", str(runs[0]), str(runs[1]), "--keys", "eval_success",
+                                 "--x", "samples", "-o", str(tmp_path / "priors.png"), "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["metrics"] == [str(p) for p in runs] and (tmp_path / "priors.png").stat().st_size > 0
+    r = CliRunner().invoke(app, ["--quiet", "plot", str(runs[0]), str(runs[0] / "metrics.jsonl"), "-o",
+                                 str(tmp_path / "same.png")])
+    assert r.exit_code == 2 and "--label" in r.output

@@ -151,20 +151,27 @@ def export_bvh_cmd(
 
 
 @app.command(epilog=examples("motok plot runs/gpt", "motok plot runs/expert --keys success,mpjpe_mm --x samples "
-                             "--x2 wall_s --smooth 0.9 -o expert.png"))
-def plot(metrics: Path = typer.Argument(..., help="A run folder or its metrics.jsonl.", callback=existing),
-         out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png).", suffixes=(".png",),
-                                             required=False),
+                             "--x2 wall_s --smooth 0.9 -o expert.png",
+                             "motok plot runs/prior_hybrid runs/prior_continuous --keys eval_success,action_loss "
+                             "--x samples -o priors.png"))
+def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its metrics.jsonl; several are drawn "
+                                                          "on the same subplots.", callback=existing),
+         out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png; required for several runs).",
+                                             suffixes=(".png",), required=False),
+         label: Optional[list[str]] = typer.Option(None, "--label", help="Legend name of each run, in order "
+                                                                         "(default: the folder names)."),
          keys: Optional[str] = typer.Option(None, "--keys", help="Comma-separated metrics (default: all)."),
          x: str = typer.Option("iteration", "--x", help="Field on the x axis, e.g. samples."),
          x2: Optional[str] = typer.Option(None, "--x2", help="Second x axis on top, e.g. wall_s."),
          smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve."),
          as_json: bool = JsonOut):
-    """Plot training curves from a metrics JSONL to PNG."""
+    """Plot training curves from metrics JSONL to PNG; several runs on the same subplots to compare them."""
     from motok.render.plot import plot_run
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
-    dst = run(plot_run, metrics, out, names, x, smooth=smooth, x2=x2)
-    wrote({"output": str(dst), "metrics": str(metrics), "keys": names, "x": x, "x2": x2}, as_json)
+    dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2)
+    src = [str(m) for m in metrics]
+    wrote({"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2},
+          as_json)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,4 +1,5 @@
-"""Training curves from a metrics JSONL file (one JSON object per line), one subplot per key."""
+"""Training curves from metrics JSONL files (one JSON object per line), one subplot per key; several
+runs (the five priors, three navigation policies) overlaid on the same subplots, one colour each."""
 
 from __future__ import annotations
 
@@ -77,52 +78,68 @@ def _interp(v, xp: Sequence[float], fp: Sequence[float]):
     return np.where(v > xp[-1], fp[-1] + (v - xp[-1]) * slope, out)
 
 
-def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], out_png: str | os.PathLike,
-                keys: Sequence[str] | None = None, x: str = "iteration", *, smooth: float = 0.0,
-                logy: bool | Sequence[str] = False, title: str | None = None, x2: str | None = None) -> Path:
+def _records(src) -> tuple[list[dict], str]:
+    if isinstance(src, (str, os.PathLike)):
+        return read_metrics(src), str(src)
+    return [dict(r) for r in src], "records"
+
+
+def plot_curves(jsonl_path_or_records, out_png: str | os.PathLike, keys: Sequence[str] | None = None,
+                x: str = "iteration", *, smooth: float = 0.0, logy: bool | Sequence[str] = False,
+                title: str | None = None, x2: str | None = None) -> Path:
     """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
 
-    ``keys`` defaults to every numeric field except ``x``, in first-seen order. ``smooth`` in
-    [0, 1) is an exponential-moving-average weight per record (see ``_ema``): the raw curve is
-    drawn faintly behind the smoothed one. ``logy`` is True for every subplot or a list of keys to draw on a log scale.
-    ``x2`` labels a second, top axis with another field that grows with ``x`` (e.g. ``samples``
-    below, ``wall_s`` on top), read off by interpolation.
+    The source is a JSONL path or records, or a mapping ``{label: path or records}`` of several
+    runs drawn on the same subplots (one colour and legend entry each). ``keys`` defaults to every
+    numeric field but ``x``, in first-seen order; with several runs a key needs to be in one of
+    them (a continuous prior has no code usage). ``smooth`` in [0, 1) is an exponential-moving-
+    average weight per record (see ``_ema``): the raw curve is drawn faintly behind the smoothed
+    one. ``logy`` is True for every subplot or a list of keys to draw on a log scale. ``x2``
+    labels a second, top axis with another field that grows with ``x`` (e.g. ``samples`` below,
+    ``wall_s`` on top), read off by interpolation; one run only, since runs differ in speed.
     """
+    fig = _figure(jsonl_path_or_records, keys, x, smooth=smooth, logy=logy, title=title, x2=x2)
+    out = Path(out_png)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    return out
+
+
+def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None):
     if not 0.0 <= smooth < 1.0:
         raise UserError(f"smooth must be in [0, 1), got {smooth}")
-    if isinstance(jsonl_path_or_records, (str, os.PathLike)):
-        records = read_metrics(jsonl_path_or_records)
-        source = str(jsonl_path_or_records)
-    else:
-        records = [dict(r) for r in jsonl_path_or_records]
-        source = "records"
-    available = list(dict.fromkeys(k for r in records for k, v in r.items() if _is_number(v)))
+    many = isinstance(source, Mapping)
+    runs = {label: _records(src) for label, src in (source.items() if many else [("", source)])}
+    if many and not runs:
+        raise UserError("no runs to plot")
+    if many and len(runs) > 1 and x2:
+        raise UserError("--x2 labels one run's second axis: give a single run with it")
+    names = ", ".join(src for _, src in runs.values())
+    available = list(dict.fromkeys(k for recs, _ in runs.values() for r in recs for k, v in r.items() if _is_number(v)))
     if keys is None:
         keys = [k for k in available if k != x]
     keys = list(keys)
     unknown = [k for k in keys if k not in available]
     if unknown:
-        raise UserError(f"{source}: no metric {', '.join(map(repr, unknown))} in the log; it has: "
+        raise UserError(f"{names}: no metric {', '.join(map(repr, unknown))} in the log; it has: "
                         f"{', '.join(available) or '(nothing numeric)'}")
     for name, key in (("--x", x), ("--x2", x2)):
         # Without an iteration field the record number is the x axis (documented); any other
         # field must be there, or the plot would silently show something else.
         if key and key not in available and not (name == "--x" and key == "iteration"):
-            raise UserError(f"{source}: {name} {key!r} is not a numeric field of the log; it has: "
+            raise UserError(f"{names}: {name} {key!r} is not a numeric field of the log; it has: "
                             f"{', '.join(available) or '(nothing numeric)'}")
-    series = {}
-    for k in keys:
-        pts = [(r[x] if _is_number(r.get(x)) else i, r[k], i) for i, r in enumerate(records) if _is_number(r.get(k))]
-        series[k] = pts
+    series = {label: {k: [(r[x] if _is_number(r.get(x)) else i, r[k], i) for i, r in enumerate(recs)
+                          if _is_number(r.get(k))] for k in keys} for label, (recs, _) in runs.items()}
     top = None
     if x2:
-        pairs = sorted({(r[x], r[x2]) for r in records if _is_number(r.get(x)) and _is_number(r.get(x2))})
+        (recs, source_name), = runs.values()
+        pairs = sorted({(r[x], r[x2]) for r in recs if _is_number(r.get(x)) and _is_number(r.get(x2))})
         if len(pairs) < 2 or any(b[1] < a[1] for a, b in zip(pairs, pairs[1:])):
-            raise UserError(f"{source}: {x2!r} must grow with {x!r} to label a second axis")
+            raise UserError(f"{source_name}: {x2!r} must grow with {x!r} to label a second axis")
         top = tuple(map(list, zip(*pairs)))
-    empty = [k for k, pts in series.items() if not pts]
-    if not keys or len(empty) == len(keys):
-        raise UserError(f"{source}: no numeric values to plot for keys {keys or '(none found)'}")
+    if not keys or not any(pts for s in series.values() for pts in s.values()):
+        raise UserError(f"{names}: no numeric values to plot for keys {keys or '(none found)'}")
 
     # A bare Figure renders through Agg without touching pyplot's global backend or state,
     # so this works headless and does not disturb an interactive session that calls it.
@@ -134,22 +151,30 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     axes = fig.subplots(nrows, ncols, squeeze=False)
     log_keys = set(keys) if logy is True else set(logy or ())
     for ax, k in zip(axes.flat, keys):
-        pts = sorted(series[k], key=lambda p: p[0])
         ax.set_title(k, fontsize=10, loc="left")
         ax.grid(True, alpha=0.3)
         ax.set_xlabel(x, fontsize=8)
-        if not pts:
+        drawn = []
+        for c, (label, s) in enumerate(series.items()):
+            pts = sorted(s[k], key=lambda p: p[0])
+            if not pts:
+                continue
+            xs, ys, rows = zip(*pts)
+            drawn += ys
+            color, name = f"C{c}", label or None
+            sparse = dict(marker="o", markersize=3) if len(xs) < 60 else {}  # an evaluation every K iterations
+            if smooth > 0:
+                ax.plot(xs, ys, color=color, alpha=0.25, linewidth=1)
+                ax.plot(xs, _ema(ys, smooth, rows), color=color, linewidth=1.6, label=name, **sparse)
+            else:
+                ax.plot(xs, ys, color=color, linewidth=1.4, label=name, **sparse)
+        if not drawn:
             ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="grey")
             continue
-        xs, ys, rows = zip(*pts)
-        sparse = dict(marker="o", markersize=3) if len(xs) < 60 else {}  # an evaluation every K iterations
-        if smooth > 0:
-            ax.plot(xs, ys, color="C0", alpha=0.25, linewidth=1)
-            ax.plot(xs, _ema(ys, smooth, rows), color="C0", linewidth=1.6, **sparse)
-        else:
-            ax.plot(xs, ys, color="C0", linewidth=1.4, **sparse)
-        if k in log_keys and min(ys) > 0:
+        if k in log_keys and min(drawn) > 0:
             ax.set_yscale("log")
+        if len(series) > 1:
+            ax.legend(fontsize=7, loc="best")
         if top is not None:
             fwd = lambda v, a=top: _interp(v, a[0], a[1])  # noqa: E731
             inv = lambda v, a=top: _interp(v, a[1], a[0])  # noqa: E731
@@ -159,21 +184,34 @@ def plot_curves(jsonl_path_or_records: str | os.PathLike | Iterable[Mapping], ou
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    out = Path(out_png)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    return out
+    return fig
 
 
-def plot_run(run_or_jsonl: str | os.PathLike, out_png: str | os.PathLike | None = None,
-             keys: Sequence[str] | None = None, x: str = "iteration", **kw) -> Path:
-    """``motok plot``: a run folder (its ``metrics.jsonl``) or a JSONL file, drawn by
-    :func:`plot_curves` to ``out_png`` (default: ``curves.png`` beside the metrics)."""
+def _metrics_file(run_or_jsonl) -> Path:
     src = Path(run_or_jsonl)
     if src.is_dir():
         if not (src / "metrics.jsonl").is_file():
             raise UserError(f"{src}: not a run folder (it has no metrics.jsonl)")
         src = src / "metrics.jsonl"
-    out = Path(out_png) if out_png is not None else src.with_name("curves.png")
+    return src
+
+
+def plot_run(run_or_jsonl, out_png: str | os.PathLike | None = None, keys: Sequence[str] | None = None,
+             x: str = "iteration", labels: Sequence[str] | None = None, **kw) -> Path:
+    """``motok plot``: a run folder (its ``metrics.jsonl``) or a JSONL file, drawn by
+    :func:`plot_curves` to ``out_png`` (default: ``curves.png`` beside the metrics); or a list of
+    them on the same subplots (``out_png`` required), labelled by ``labels`` or their folder names."""
+    many = isinstance(run_or_jsonl, (list, tuple))
+    srcs = [_metrics_file(r) for r in (run_or_jsonl if many else [run_or_jsonl])]
+    if many and len(srcs) > 1 and out_png is None:
+        raise UserError("several runs: name the comparison's file with -o/--out (a .png)")
+    if labels is not None and len(labels) != len(srcs):
+        raise UserError(f"{len(labels)} labels for {len(srcs)} runs: give one --label per run")
+    out = Path(out_png) if out_png is not None else srcs[0].with_name("curves.png")
     check_writable(out, suffixes=(".png",))
-    return plot_curves(src, out, keys, x, **kw)
+    if len(srcs) == 1:
+        return plot_curves(srcs[0], out, keys, x, **kw)
+    names = list(labels) if labels is not None else [s.parent.name if s.name == "metrics.jsonl" else s.stem for s in srcs]
+    if len(set(names)) != len(names):
+        raise UserError(f"runs share a name ({', '.join(names)}): tell them apart with --label")
+    return plot_curves(dict(zip(names, srcs)), out, keys, x, **kw)

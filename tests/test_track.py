@@ -71,6 +71,21 @@ def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, smal
     assert (tmp_path / "s.gif").exists() and (tmp_path / "s.bvh").stat().st_size > 1000
 
 
+def test_a_split_of_a_dataset_is_tracked(pd_controller, small_dataset, tmp_path):
+    """``split``: the clips of that split only (the real-test-motion row of issue 17's evaluation),
+    alone or with a glob; a split the data lacks is named."""
+    from motok.errors import UserError
+
+    with MotionFile(small_dataset) as mf:
+        test = [mf.names[i] for i in mf.split_indices("test")]
+    res = track(pd_controller, small_dataset, tmp_path / "test.h5", split="test")
+    with MotionFile(tmp_path / "test.h5", "motion") as sim:
+        assert sorted(sim.names) == sorted(test) and res["clips"] == len(test) >= 1
+        assert {sim.clip(n).split for n in sim.names} == {"test"}
+    with pytest.raises(UserError, match="split 'nope'"):
+        track(pd_controller, small_dataset, tmp_path / "x.h5", split="nope")
+
+
 def test_floating_motion_is_placed_on_the_floor_and_short_clips_fail_alone(pd_controller, small_dataset, tmp_path,
                                                                           lib):
     """A motion 1 m above the floor is tracked from the floor; a clip too short to track is

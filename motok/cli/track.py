@@ -23,6 +23,8 @@ def track_cmd(
                                             "codebooks only (default: all)."),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test), "
+                                        "e.g. real test motion tracked, for `motok eval t2m --motions`."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip, the kinematic motion as a "
                                            "ghost (.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
     as_json: bool = JsonOut,
@@ -30,7 +32,8 @@ def track_cmd(
     """Track every clip from its first frame; write the simulated bodies at the motion's frame rate."""
     from motok.control.track import load_controller, track
 
-    res = run(lambda: track(load_controller(expert, prior, codebooks), motion, out, clips=clips, render=render))
+    res = run(lambda: track(load_controller(expert, prior, codebooks), motion, out, clips=clips, split=split,
+                               render=render))
     per = res.pop("per_clip")
     report(res, as_json, "control track")
     if not as_json:
@@ -43,4 +46,5 @@ def register(app: typer.Typer) -> None:
     app.command("track", epilog=examples(
         "motok control track -d walk.h5 --expert runs/expert -o walk_sim.h5 --render walk_sim.mp4",
         "motok control track -d runs/bandai2.h5 --clips 'dataset-2_run_*' --prior runs/prior_hybrid -o run_sim.h5",
+        "motok control track -d runs/bandai2.h5 --split test --prior runs/prior_hybrid -o test_sim.h5",
     ))(track_cmd)

@@ -85,8 +85,9 @@ def load_controller(expert=None, prior=None, codebooks: int | None = None) -> tu
     return cfg, hum, StudentPolicy(model, codebooks), meta
 
 
-def track(controller, motion, out, *, clips: str | None = None, render=None, batch: int = 256) -> dict:
-    """Track the clips of ``motion`` (all, or the ``clips`` glob) with ``controller``, a
+def track(controller, motion, out, *, clips: str | None = None, split: str | None = None, render=None,
+          batch: int = 256) -> dict:
+    """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with ``controller``, a
     ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
     returns, and write the simulated clips to ``out``. Returns per-clip and overall results."""
     from motok.control.clips import select_clips
@@ -94,7 +95,7 @@ def track(controller, motion, out, *, clips: str | None = None, render=None, bat
     cfg, hum, ac, meta = controller
     motion, out = Path(motion), Path(out)
     with MotionFile(motion) as mf:
-        names = select_clips(motion, clips) if clips else list(mf.names)
+        names = select_clips(motion, clips, split) if clips or split else list(mf.names)
         fps, skeleton, legacy = mf.fps, mf.skeleton, mf.legacy
         offsets = np.asarray(mf.offsets, dtype=np.float64)
         refs = {n: mf.clip(n) for n in names}

@@ -68,7 +68,8 @@ class RunningNorm(nn.Module):
 
     @staticmethod
     def _global_moments(x: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
-        sums = torch.cat([torch.tensor([float(len(x))], dtype=torch.float64), x.sum(0), (x * x).sum(0)])
+        sums = torch.cat([torch.tensor([float(len(x))], dtype=torch.float64, device=x.device), x.sum(0),
+                          (x * x).sum(0)])
         dist.all_reduce(sums)
         d = x.shape[1]
         n = float(sums[0])

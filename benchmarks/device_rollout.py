@@ -42,11 +42,8 @@ def env_rate(mdp, seconds: float) -> float:
         a = rng.normal(0.0, 0.055, (env.num_envs, env.action_dim))
         if env.on_device:
             a = torch.as_tensor(a, dtype=torch.float32, device=env.torch_device)
-        _, _, _, term, trunc, _ = mdp.step(a)
-        done = term | trunc
-        ids = done.nonzero().flatten() if env.on_device else np.flatnonzero(done)
-        if len(ids):
-            mdp.reset(ids)
+        obs, goal, _, term, trunc, _ = mdp.step(a)
+        mdp.restart_done(term | trunc, obs, goal)
         if t0 is None:  # the first step compiles and loads kernels: not timed
             t0 = time.perf_counter()
             continue

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from motok.arrays import xp
@@ -136,11 +135,7 @@ class DaggerCollector:
             obs, goal, rewards, term, trunc, _ = mdp.step(host(a))
             b.rewards[t] = torch.as_tensor(rewards[self.key])
             b.terminated[t], b.truncated[t] = torch.as_tensor(term), torch.as_tensor(trunc)
-            done = term | trunc
-            ids = done.nonzero().flatten() if self.on_device else np.flatnonzero(done)
-            if len(ids):
-                obs, goal = mdp.reset(ids)
-            self.obs, self.goal = obs, goal
+            self.obs, self.goal = mdp.restart_done(term | trunc, obs, goal)
         stats = self.episodes.add(b, b.rewards, self.key, mdp.dt)
         # The student's error on states it has not been trained on yet: the honest DAgger curve.
         stats.update({self.key: float(b.rewards.mean()), "rollout_action_err": float(err.mean())})

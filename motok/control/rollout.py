@@ -142,19 +142,11 @@ class Collector:
             with torch.no_grad():
                 v = self.ac.value(self.ac.norm(self._input(obs, goal)))
             ro.final_values[t, cols] = torch.where(trunc, v, ro.final_values[t, cols])
-            # The number of finished episodes sizes the reset: the one read per step on the host.
-            ids = (term | trunc).nonzero().flatten()
-            if len(ids):
-                obs, goal = mdp.reset(ids)
-        else:
-            if trunc.any():
-                with torch.no_grad():
-                    xf = self.ac.norm(self._input(obs[trunc], goal[trunc]))
-                    ro.final_values[t, torch.from_numpy(np.flatnonzero(trunc) + self.offsets[g])] = self.ac.value(xf)
-            done = term | trunc
-            if done.any():
-                obs, goal = mdp.reset(np.flatnonzero(done))
-        self.obs[g], self.goal[g] = obs, goal
+        elif trunc.any():
+            with torch.no_grad():
+                xf = self.ac.norm(self._input(obs[trunc], goal[trunc]))
+                ro.final_values[t, torch.from_numpy(np.flatnonzero(trunc) + self.offsets[g])] = self.ac.value(xf)
+        self.obs[g], self.goal[g] = mdp.restart_done(term | trunc, obs, goal)
 
     def collect(self) -> tuple[Rollout, torch.Tensor, dict]:
         ac, T, N, G = self.ac, self.horizon, self.num_envs, len(self.mdps)

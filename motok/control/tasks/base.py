@@ -74,6 +74,13 @@ class TaskEnv:
         self.task.reset(ids, **where)
         return self.env.observation(), self.task.goal()
 
+    def restart_done(self, done, obs, goal):
+        """Reset the environments whose episode ended (``done`` mask) and return the full
+        ``(obs, goal)``; unchanged when none did. On the device the ids come from ``nonzero``, whose
+        size is the one number read on the host per step."""
+        ids = done.nonzero().flatten() if self.env.on_device else np.flatnonzero(done)
+        return self.reset(ids) if len(ids) else (obs, goal)
+
     def launch(self, actions: np.ndarray, threaded: bool = True) -> None:
         """Start a control step (physics on a worker thread when ``threaded``); :meth:`finish` ends it."""
         if not self._started:

@@ -1,0 +1,179 @@
+#!/usr/bin/env bash
+# The physics results of docs/results.md (issues 14-17) as one resumable queue, for a machine that
+# may be handed back to you, or not, between sessions. Every training resumes exactly from its
+# last checkpoint when its run folder holds one; a finished training or an evaluation whose output
+# exists costs nothing; so run it again, as it is, to continue wherever it stopped.
+#
+#   scripts/physics_results.sh                 # every stage, in the order below
+#   scripts/physics_results.sh priors tasks    # only these stages (names below)
+#   kill -TERM PID                             # the training under way stops at its next checkpoint,
+#                                              # and the queue stops after it
+#
+# Stages, most important first (each waits for what it reads):
+#   data      runs/bandai2.h5, Bandai-Namco set 2 preprocessed
+#   expert    the whole-dataset expert (issue 14), to EXPERT_IT iterations, then its val/test evaluations
+#   priors    hybrid, continuous, discrete+, discrete, hybrid-vq distilled from it, PRIOR_IT iterations each (issue 15)
+#   prioreval imitation on the train and test clips for every prior (Fig. 4), Table 1 (generation + motion matching)
+#   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1), TASK_IT iterations each (issue 16)
+#   tasks     in-betweening and head tracking over hybrid and continuous; hybrid with 1, 2, 4 codebooks on navigation (Fig. 13)
+#   taskeval  every task run evaluated; the thrown balls on the navigation runs
+#   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
+#
+# Settings (environment): R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
+# 40k-iteration LR schedule), PRIOR_IT=3000 and TASK_IT=3000 (--set iterations: the schedules fit the budget).
+# Measured durations on 2 quiet cores are in docs/results.md beside each number.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+R=${R:-runs}
+MOTOK=${MOTOK:-.venv/bin/motok}
+NICE=${NICE:-5}
+EXPERT_IT=${EXPERT_IT:-13000}
+PRIOR_IT=${PRIOR_IT:-3000}
+TASK_IT=${TASK_IT:-3000}
+DATA=$R/bandai2.h5
+EXPERT=$R/expert_set2
+export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
+mkdir -p "$R/logs"
+
+stopped=0
+trap 'stopped=1; [ -n "${child:-}" ] && kill -TERM "$child" 2>/dev/null' TERM
+
+log() { printf '[%s] %s\n' "$(date -u +%H:%M:%S)" "$*"; }
+
+# run LOG CMD...: one command at low priority, its output in $R/logs/LOG.log; the queue stops when
+# it fails or was asked to stop.
+run() {
+    local name=$1; shift
+    log "$name: $*"
+    nice -n "$NICE" "$@" >> "$R/logs/$name.log" 2>&1 &
+    child=$!
+    local rc=0
+    wait "$child" || rc=$?
+    wait "$child" 2>/dev/null || true  # a TERM interrupts the first wait, not the child
+    child=
+    if [ "$stopped" = 1 ]; then log "stopped on request after $name"; exit 0; fi
+    if [ "$rc" != 0 ]; then log "$name failed (exit $rc): see $R/logs/$name.log"; exit "$rc"; fi
+}
+
+# train DIR LOG CMD...: CMD -o DIR, with --resume when DIR holds a checkpoint.
+train() {
+    local dir=$1 name=$2; shift 2
+    local resume=()
+    [ -f "$dir/bundle.json" ] && resume=(--resume)
+    run "$name" "$@" -o "$dir" "${resume[@]}"
+}
+
+# once OUT LOG CMD...: CMD unless OUT exists.
+once() {
+    local out=$1; shift
+    [ -e "$out" ] && return 0
+    run "$@"
+}
+
+stage_data() {
+    once "$DATA" preprocess "$MOTOK" preprocess --recipe recipes/preprocess/bandai2.yaml -o "$DATA"
+}
+
+stage_expert() {
+    train "$EXPERT" expert_set2 "$MOTOK" control expert train -d "$DATA" --split train \
+        --recipe recipes/control/expert_set2.yaml --until "$EXPERT_IT"
+    for split in val test; do
+        once "$EXPERT/eval_$split.json" expert_eval "$MOTOK" control expert eval --expert "$EXPERT" -d "$DATA" --split "$split"
+    done
+}
+
+PRIORS=(hybrid continuous discrete+ discrete hybrid-vq)
+
+stage_priors() {
+    for k in "${PRIORS[@]}"; do
+        train "$R/prior_$k" "prior_$k" "$MOTOK" control distill --expert "$EXPERT" --prior "$k" \
+            --recipe "recipes/control/prior_$k.yaml" --set iterations="$PRIOR_IT"
+    done
+}
+
+stage_prioreval() {
+    local gens=()
+    for k in "${PRIORS[@]}"; do
+        local p=$R/prior_$k
+        [ -f "$p/bundle.json" ] || continue
+        once "$p/eval.json" prior_eval "$MOTOK" control eval --task imitation --prior "$p"
+        once "$p/eval_test.json" prior_eval "$MOTOK" control eval --task imitation --prior "$p" -d "$DATA" --split test
+        local ms=(all)
+        case $k in discrete+) ms=(1 2 3) ;; hybrid) ms=(1 2 3 4 5 6 7 8) ;; esac
+        for m in "${ms[@]}"; do
+            local cb=() tag=$k
+            [ "$m" != all ] && cb=(--codebooks "$m") && tag=$k-m$m
+            once "$R/table1/$tag.h5" generate "$MOTOK" control generate --prior "$p" "${cb[@]}" \
+                --seconds 30 -n 64 --seed 0 -o "$R/table1/$tag.h5"
+            gens+=(--motions "$R/table1/$tag.h5")
+        done
+    done
+    [ ${#gens[@]} -gt 0 ] && once "$R/table1/table1.json" motion_matching "$MOTOK" eval motion-matching \
+        -d "$DATA" --split train "${gens[@]}" -o "$R/table1/table1.json" -o "$R/table1/table1.md"
+    return 0
+}
+
+# task TASK PRIOR RUN [--set ...]: one task policy over a frozen prior, TASK_IT iterations.
+task() {
+    local t=$1 k=$2 dir=$3; shift 3
+    [ -f "$R/prior_$k/bundle.json" ] || { log "skip $dir: no prior_$k"; return 0; }
+    train "$dir" "$(basename "$dir")" "$MOTOK" control train --task "$t" --prior "$R/prior_$k" \
+        --recipe "recipes/control/task_$t.yaml" --set iterations="$TASK_IT" "$@"
+}
+
+stage_nav() {
+    task navigation hybrid "$R/nav_hybrid"
+    task navigation discrete+ "$R/nav_discrete+"
+    task navigation continuous "$R/nav_continuous" --set net.std=0.2
+    task navigation continuous "$R/nav_continuous_std0.1" --set net.std=0.1
+}
+
+stage_tasks() {
+    for t in inbetween hmd; do
+        task "$t" hybrid "$R/${t}_hybrid"
+        task "$t" continuous "$R/${t}_continuous"
+    done
+    for m in 1 2 4; do
+        task navigation hybrid "$R/nav_hybrid_m$m" --codebooks "$m"
+    done
+}
+
+stage_taskeval() {
+    for dir in "$R"/nav_* "$R"/inbetween_* "$R"/hmd_*; do
+        [ -f "$dir/bundle.json" ] || continue
+        local t=navigation
+        case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
+        once "$dir/eval_$t.json" task_eval "$MOTOK" control eval --task "$t" --run "$dir" -n 256 --render "$dir/$t.mp4"
+        [ "$t" = navigation ] && once "$dir/perturb.json" perturb "$MOTOK" control perturb --run "$dir" -n 64 \
+            --render "$dir/balls.mp4"
+    done
+    return 0
+}
+
+stage_t2p() {
+    local K=$R/kinematic P=$R/prior_hybrid
+    mkdir -p "$K"
+    once "$K/bow-v2/bundle.json" evaluator "$MOTOK" eval train-evaluator -d "$DATA" --recipe recipes/eval/evaluator.yaml -o "$K/bow-v2"
+    train "$K/tokenizer" tokenizer "$MOTOK" tokenize train -d "$DATA" --recipe recipes/tokenizer/ema_reset.yaml
+    once "$K/tokens.h5" tokens "$MOTOK" tokenize encode -t "$K/tokenizer" -d "$DATA" -o "$K/tokens.h5"
+    train "$K/gpt" gpt "$MOTOK" gpt train -d "$K/tokens.h5" --recipe recipes/gpt/default.yaml
+    once "$K/generated.h5" t2m "$MOTOK" eval t2m -e "$K/bow-v2" -d "$DATA" -t "$K/tokenizer" --gpt "$K/gpt" \
+        --recipe recipes/eval/t2m.yaml --save-generated "$K/generated.h5" -o "$K/t2m-kinematic.json" -o "$K/t2m-kinematic.md"
+    once "$K/generated_sim.h5" track "$MOTOK" control track -d "$K/generated.h5" --prior "$P" -o "$K/generated_sim.h5" --json
+    once "$K/real_test_sim.h5" track "$MOTOK" control track -d "$DATA" --split test --prior "$P" -o "$K/real_test_sim.h5" --json
+    once "$K/t2m-physics.json" t2m "$MOTOK" eval t2m -e "$K/bow-v2" -d "$DATA" --motions "$K/generated.h5" \
+        --motions "$K/generated_sim.h5" --motions "$K/real_test_sim.h5" --recipe recipes/eval/t2m.yaml \
+        -o "$K/t2m-physics.json" -o "$K/t2m-physics.md"
+}
+
+ALL=(data expert priors nav prioreval tasks taskeval t2p)
+stages=("$@")
+[ ${#stages[@]} -gt 0 ] || stages=("${ALL[@]}")
+for s in "${stages[@]}"; do
+    case " ${ALL[*]} " in *" $s "*) ;; *) echo "unknown stage '$s' (expected one of: ${ALL[*]})" >&2; exit 2 ;; esac
+done
+for s in "${stages[@]}"; do
+    log "stage $s"
+    "stage_$s"
+done
+log "done: results under $R/ (logs in $R/logs/)"

@@ -26,6 +26,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 R=${R:-runs}
 MOTOK=${MOTOK:-.venv/bin/motok}
+read -ra M <<< "$MOTOK"  # a command of several words too, e.g. a frozen copy of the code
 NICE=${NICE:-5}
 EXPERT_IT=${EXPERT_IT:-13000}
 PRIOR_IT=${PRIOR_IT:-3000}
@@ -71,14 +72,14 @@ once() {
 }
 
 stage_data() {
-    once "$DATA" preprocess "$MOTOK" preprocess --recipe recipes/preprocess/bandai2.yaml -o "$DATA"
+    once "$DATA" preprocess "${M[@]}" preprocess --recipe recipes/preprocess/bandai2.yaml -o "$DATA"
 }
 
 stage_expert() {
-    train "$EXPERT" expert_set2 "$MOTOK" control expert train -d "$DATA" --split train \
+    train "$EXPERT" expert_set2 "${M[@]}" control expert train -d "$DATA" --split train \
         --recipe recipes/control/expert_set2.yaml --until "$EXPERT_IT"
     for split in val test; do
-        once "$EXPERT/eval_$split.json" expert_eval "$MOTOK" control expert eval --expert "$EXPERT" -d "$DATA" --split "$split"
+        once "$EXPERT/eval_$split.json" expert_eval "${M[@]}" control expert eval --expert "$EXPERT" -d "$DATA" --split "$split"
     done
 }
 
@@ -86,7 +87,7 @@ PRIORS=(hybrid continuous discrete+ discrete hybrid-vq)
 
 stage_priors() {
     for k in "${PRIORS[@]}"; do
-        train "$R/prior_$k" "prior_$k" "$MOTOK" control distill --expert "$EXPERT" --prior "$k" \
+        train "$R/prior_$k" "prior_$k" "${M[@]}" control distill --expert "$EXPERT" --prior "$k" \
             --recipe "recipes/control/prior_$k.yaml" --set iterations="$PRIOR_IT"
     done
 }
@@ -96,19 +97,19 @@ stage_prioreval() {
     for k in "${PRIORS[@]}"; do
         local p=$R/prior_$k
         [ -f "$p/bundle.json" ] || continue
-        once "$p/eval.json" prior_eval "$MOTOK" control eval --task imitation --prior "$p"
-        once "$p/eval_test.json" prior_eval "$MOTOK" control eval --task imitation --prior "$p" -d "$DATA" --split test
+        once "$p/eval.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p"
+        once "$p/eval_test.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p" -d "$DATA" --split test
         local ms=(all)
         case $k in discrete+) ms=(1 2 3) ;; hybrid) ms=(1 2 3 4 5 6 7 8) ;; esac
         for m in "${ms[@]}"; do
             local cb=() tag=$k
             [ "$m" != all ] && cb=(--codebooks "$m") && tag=$k-m$m
-            once "$R/table1/$tag.h5" generate "$MOTOK" control generate --prior "$p" "${cb[@]}" \
+            once "$R/table1/$tag.h5" generate "${M[@]}" control generate --prior "$p" "${cb[@]}" \
                 --seconds 30 -n 64 --seed 0 -o "$R/table1/$tag.h5"
             gens+=(--motions "$R/table1/$tag.h5")
         done
     done
-    [ ${#gens[@]} -gt 0 ] && once "$R/table1/table1.json" motion_matching "$MOTOK" eval motion-matching \
+    [ ${#gens[@]} -gt 0 ] && once "$R/table1/table1.json" motion_matching "${M[@]}" eval motion-matching \
         -d "$DATA" --split train "${gens[@]}" -o "$R/table1/table1.json" -o "$R/table1/table1.md"
     return 0
 }
@@ -117,7 +118,7 @@ stage_prioreval() {
 task() {
     local t=$1 k=$2 dir=$3; shift 3
     [ -f "$R/prior_$k/bundle.json" ] || { log "skip $dir: no prior_$k"; return 0; }
-    train "$dir" "$(basename "$dir")" "$MOTOK" control train --task "$t" --prior "$R/prior_$k" \
+    train "$dir" "$(basename "$dir")" "${M[@]}" control train --task "$t" --prior "$R/prior_$k" \
         --recipe "recipes/control/task_$t.yaml" --set iterations="$TASK_IT" "$@"
 }
 
@@ -143,8 +144,8 @@ stage_taskeval() {
         [ -f "$dir/bundle.json" ] || continue
         local t=navigation
         case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
-        once "$dir/eval_$t.json" task_eval "$MOTOK" control eval --task "$t" --run "$dir" -n 256 --render "$dir/$t.mp4"
-        [ "$t" = navigation ] && once "$dir/perturb.json" perturb "$MOTOK" control perturb --run "$dir" -n 64 \
+        once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n 256 --render "$dir/$t.mp4"
+        [ "$t" = navigation ] && once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n 64 \
             --render "$dir/balls.mp4"
     done
     return 0
@@ -153,15 +154,15 @@ stage_taskeval() {
 stage_t2p() {
     local K=$R/kinematic P=$R/prior_hybrid
     mkdir -p "$K"
-    once "$K/bow-v2/bundle.json" evaluator "$MOTOK" eval train-evaluator -d "$DATA" --recipe recipes/eval/evaluator.yaml -o "$K/bow-v2"
-    train "$K/tokenizer" tokenizer "$MOTOK" tokenize train -d "$DATA" --recipe recipes/tokenizer/ema_reset.yaml
-    once "$K/tokens.h5" tokens "$MOTOK" tokenize encode -t "$K/tokenizer" -d "$DATA" -o "$K/tokens.h5"
-    train "$K/gpt" gpt "$MOTOK" gpt train -d "$K/tokens.h5" --recipe recipes/gpt/default.yaml
-    once "$K/generated.h5" t2m "$MOTOK" eval t2m -e "$K/bow-v2" -d "$DATA" -t "$K/tokenizer" --gpt "$K/gpt" \
+    once "$K/bow-v2/bundle.json" evaluator "${M[@]}" eval train-evaluator -d "$DATA" --recipe recipes/eval/evaluator.yaml -o "$K/bow-v2"
+    train "$K/tokenizer" tokenizer "${M[@]}" tokenize train -d "$DATA" --recipe recipes/tokenizer/ema_reset.yaml
+    once "$K/tokens.h5" tokens "${M[@]}" tokenize encode -t "$K/tokenizer" -d "$DATA" -o "$K/tokens.h5"
+    train "$K/gpt" gpt "${M[@]}" gpt train -d "$K/tokens.h5" --recipe recipes/gpt/default.yaml
+    once "$K/generated.h5" t2m "${M[@]}" eval t2m -e "$K/bow-v2" -d "$DATA" -t "$K/tokenizer" --gpt "$K/gpt" \
         --recipe recipes/eval/t2m.yaml --save-generated "$K/generated.h5" -o "$K/t2m-kinematic.json" -o "$K/t2m-kinematic.md"
-    once "$K/generated_sim.h5" track "$MOTOK" control track -d "$K/generated.h5" --prior "$P" -o "$K/generated_sim.h5" --json
-    once "$K/real_test_sim.h5" track "$MOTOK" control track -d "$DATA" --split test --prior "$P" -o "$K/real_test_sim.h5" --json
-    once "$K/t2m-physics.json" t2m "$MOTOK" eval t2m -e "$K/bow-v2" -d "$DATA" --motions "$K/generated.h5" \
+    once "$K/generated_sim.h5" track "${M[@]}" control track -d "$K/generated.h5" --prior "$P" -o "$K/generated_sim.h5" --json
+    once "$K/real_test_sim.h5" track "${M[@]}" control track -d "$DATA" --split test --prior "$P" -o "$K/real_test_sim.h5" --json
+    once "$K/t2m-physics.json" t2m "${M[@]}" eval t2m -e "$K/bow-v2" -d "$DATA" --motions "$K/generated.h5" \
         --motions "$K/generated_sim.h5" --motions "$K/real_test_sim.h5" --recipe recipes/eval/t2m.yaml \
         -o "$K/t2m-physics.json" -o "$K/t2m-physics.md"
 }

@@ -1,0 +1,103 @@
+"""scripts/physics_results.sh, the resumable queue of the physics results: every option of every
+command it issues is one the motok command line has (so a renamed option fails here, not hours
+into a queue),
+trainings resume exactly where a checkpoint exists and start fresh where none does, existing
+outputs are not made again, and the stages run in their order."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from motok.cli.main import app
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "physics_results.sh"
+PRIORS = ("hybrid", "continuous", "discrete+", "discrete", "hybrid-vq")
+
+
+def queue(tmp_path: Path, *stages: str, checkpoints=(), outputs=()) -> list[list[str]]:
+    """Run the queue with a recorder in place of motok; the argv of every command it issued."""
+    record = tmp_path / "argv.jsonl"
+    shim = tmp_path / "record.py"
+    shim.write_text(f"import json, sys\nopen({str(record)!r}, 'a').write(json.dumps(sys.argv[1:]) + '\\n')\n")
+    runs = tmp_path / "runs"
+    for d in checkpoints:
+        (runs / d).mkdir(parents=True, exist_ok=True)
+        (runs / d / "bundle.json").write_text("{}")
+    for f in outputs:
+        (runs / f).parent.mkdir(parents=True, exist_ok=True)
+        (runs / f).write_text("")
+    env = {**os.environ, "R": str(runs), "MOTOK": f"{sys.executable} {shim}"}
+    p = subprocess.run(["bash", str(SCRIPT), *stages], env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stdout + p.stderr
+    return [json.loads(line) for line in record.read_text().splitlines()] if record.exists() else []
+
+
+def out_of(argv: list[str]) -> str:
+    return Path(argv[argv.index("-o") + 1]).name
+
+
+def test_every_command_is_accepted_by_the_cli(tmp_path):
+    every = ["expert_set2", *(f"prior_{k}" for k in PRIORS), "nav_hybrid", "nav_continuous", "inbetween_hybrid",
+             "hmd_hybrid", "kinematic/tokenizer", "kinematic/gpt"]
+    cmds = queue(tmp_path, checkpoints=every)
+    kinds = {tuple(a[:2]) for a in cmds}
+    # each part of the chain is there: expert, distillation, evaluation, Table 1, tasks, text to physics
+    for k in [("control", "expert"), ("control", "distill"), ("control", "eval"), ("control", "generate"),
+              ("eval", "motion-matching"), ("control", "train"), ("control", "perturb"), ("control", "track"),
+              ("eval", "t2m"), ("gpt", "train"), ("tokenize", "train"), ("preprocess", "--recipe")]:
+        assert k in kinds, k
+    runner = CliRunner()
+    for argv in cmds:
+        # --help after every option: click parses them all first, so an unknown option or a missing
+        # value still fails while nothing runs (values are converted later: not checked here)
+        res = runner.invoke(app, [*argv, "--help"])
+        assert res.exit_code == 0, (argv, res.output)
+
+
+def test_trainings_resume_only_from_a_checkpoint(tmp_path):
+    cmds = queue(tmp_path, "priors", checkpoints=["prior_hybrid"])
+    distills = {out_of(a): a for a in cmds if a[:2] == ["control", "distill"]}
+    assert list(distills) == [f"prior_{k}" for k in PRIORS]  # in the queue's order
+    assert "--resume" in distills["prior_hybrid"]
+    assert all("--resume" not in a for name, a in distills.items() if name != "prior_hybrid")
+    for k in PRIORS:  # each with its own recipe and kind, at one budget
+        a = distills[f"prior_{k}"]
+        assert a[a.index("--prior") + 1] == k and a[a.index("--recipe") + 1] == f"recipes/control/prior_{k}.yaml"
+        assert "iterations=3000" in a
+
+
+def test_outputs_that_exist_are_not_made_again(tmp_path):
+    cmds = queue(tmp_path, "data", "expert", outputs=["bandai2.h5", "expert_set2/eval_val.json"])
+    assert [a[:3] for a in cmds] == [["control", "expert", "train"], ["control", "expert", "eval"]]
+    assert cmds[1][cmds[1].index("--split") + 1] == "test"
+
+
+def test_tasks_wait_for_their_prior(tmp_path):
+    cmds = queue(tmp_path, "nav", checkpoints=["prior_continuous"])
+    outs = [out_of(a) for a in cmds]
+    assert outs == ["nav_continuous", "nav_continuous_std0.1"]  # no hybrid or discrete+ prior yet
+    stds = [a[a.index("--set") + 3] for a in cmds]  # --set iterations=N --set net.std=S
+    assert stds == ["net.std=0.2", "net.std=0.1"]
+
+
+def test_an_unknown_stage_fails_before_anything_runs(tmp_path):
+    p = subprocess.run(["bash", str(SCRIPT), "data", "bogus"], env={**os.environ, "R": str(tmp_path / "runs"),
+                       "MOTOK": "false"}, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "unknown stage 'bogus'" in p.stderr
+    assert not (tmp_path / "runs" / "logs").exists() or not any((tmp_path / "runs" / "logs").iterdir())
+
+
+def test_a_failing_command_stops_the_queue(tmp_path):
+    shim = tmp_path / "fail.py"
+    shim.write_text("import sys\nsys.exit(3)\n")
+    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": f"{sys.executable} {shim}"}
+    p = subprocess.run(["bash", str(SCRIPT), "expert", "priors"], env=env, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 3
+    assert "expert_set2 failed (exit 3)" in p.stdout and "stage priors" not in p.stdout

@@ -188,7 +188,8 @@ def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
         if term[0] or trunc[0]:
             break
     path, backend = render_trajectory(mdp.env.hum, np.stack(qpos), out, mdp.env.control_hz, title=title,
-                                      markers=np.stack(marks) if marks else None, marker_radius=0.12)
+                                      markers=np.stack(marks) if marks else None,
+                                      marker_radius=getattr(mdp.task, "marker_radius", 0.12))
     return f"{path} ({backend})"
 
 

@@ -73,6 +73,11 @@ def build_ball_model(humanoid: Humanoid | str | Path, out, count: int, radius: f
                       material=PREFIX + "material", contype="0", conaffinity="1")
     meta = {"version": 1, "count": int(count), "radius": float(radius), "mass": float(mass)}
     ET.SubElement(root.find("custom"), "text", name=META_NAME, data=json.dumps(meta))
+    # The humanoid's own scale for the renderer: from the parked balls MuJoCo would derive an extent
+    # of about 1 km, and with it a near clipping plane 10 m from the camera (z_near = 0.01 extent).
+    if root.find("statistic") is None:
+        ET.SubElement(root, "statistic", extent=f"{hum.model.stat.extent:.9g}",
+                      center=" ".join(f"{x:.9g}" for x in hum.model.stat.center))
     ET.indent(root)
     out = Path(out)
     with atomic_path(out) as tmp:

@@ -42,6 +42,30 @@ def _add_markers(scn, pos: np.ndarray, rgba: np.ndarray, radius: float) -> None:
         scn.ngeom += 1
 
 
+# The follow camera: 3.4 m from what it frames, 12 degrees down; it backs off and tilts down to keep
+# distant markers (a navigation target 5-10 m away) in the picture with the character.
+CAM_DISTANCE, CAM_ELEVATION, CAM_AZIMUTH = 3.4, -12.0, 120.0
+CAM_FOVY_MARGIN = 2.2  # distance per metre of the framed radius: MuJoCo's 45-degree fovy, with room
+LOOK_HEIGHT = 0.9
+
+
+def framing(root: np.ndarray, points: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+    """Camera look-at point, distance and elevation (degrees) that frame the character's ``root``
+    ``(3,)`` and the finite rows of ``points`` ``(K, 3)`` (MuJoCo world, z up): the centre of
+    their ground-plane bounding box at chest height, far enough back that the box's half-diagonal
+    stays inside the view, and more downward the farther back, so points on the floor show."""
+    xy = root[None, :2]
+    if points is not None and len(points):
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(1)]
+        xy = np.concatenate([xy, pts[:, :2]], 0)
+    lo, hi = xy.min(0), xy.max(0)
+    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    dist = max(CAM_DISTANCE, CAM_FOVY_MARGIN * radius + 1.0)
+    elevation = CAM_ELEVATION - 18.0 * min(1.0, (dist - CAM_DISTANCE) / 10.0)
+    return np.array([centre[0], centre[1], LOOK_HEIGHT]), dist, elevation
+
+
 def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | None, title: str | None,
                    markers=None):
     import mujoco
@@ -55,16 +79,18 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
     renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
     cam = mujoco.MjvCamera()
     cam.type = mujoco.mjtCamera.mjCAMERA_FREE
-    cam.distance, cam.elevation, cam.azimuth = 3.4, -12.0, 120.0
+    cam.azimuth = CAM_AZIMUTH
     opt = mujoco.MjvOption()
-    look = None
+    view = None
     try:
         for t in range(len(qpos)):
             d.qpos[:] = qpos[t]
             mujoco.mj_forward(m, d)
-            root = d.xpos[hum.body_ids[0]].copy()
-            look = root if look is None else 0.9 * look + 0.1 * root  # a camera that follows smoothly
-            cam.lookat[:] = (look[0], look[1], 0.9)
+            root = d.xpos[hum.body_ids[0]]
+            aim = framing(root, markers[0][min(t, len(markers[0]) - 1)] if markers is not None else None)
+            # A camera that follows smoothly: look-at, distance and elevation all eased.
+            view = aim if view is None else tuple(0.9 * v + 0.1 * a for v, a in zip(view, aim))
+            cam.lookat[:], cam.distance, cam.elevation = view[0], float(view[1]), float(view[2])
             renderer.update_scene(d, camera=cam, scene_option=opt)
             if dg is not None:
                 dg.qpos[:] = ghost[min(t, len(ghost) - 1)]

@@ -81,6 +81,7 @@ class NavigationTask:
 
     goal_dim = 2
     reward_key = "r_task"
+    marker_radius = 0.25  # m, in videos: a target seen from the distance that frames it with the character
 
     def __init__(self, cfg: NavigationTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng

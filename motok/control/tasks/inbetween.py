@@ -83,6 +83,7 @@ class InbetweenTask:
     keyframe to reach). Device tensors with an on-device environment and library (as imitation)."""
 
     reward_key = "r_task"
+    marker_radius = 0.045  # m, in videos: a keyframe is 21 joint dots, which must read as a pose
     clip_p = ClipProbabilities()  # start-clip probabilities (None: by usable length)
 
     def __init__(self, cfg: InbetweenTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):

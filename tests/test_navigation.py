@@ -13,7 +13,7 @@ import pytest
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.navigation import head_fell, heading_frame_target, navigation_reward, sample_targets
 from motok.control.mdp.resets import reference_state
-from motok.control.nav_eval import episode_quota, evaluate_navigation
+from motok.control.nav_eval import MIN_IDLE_SECONDS, episode_quota, evaluate_navigation, idle_matching, stays
 from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig
 from motok.errors import UserError
@@ -243,8 +243,39 @@ def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
     assert 4 <= len(speeds) <= 2 * 30 and (speeds >= 0).all()
     assert near["goal_speed_mean"] == pytest.approx(speeds.mean()) and near["goal_speed_median"] == np.median(speeds)
     assert near["mean_reward"] > far["mean_reward"]
+    # The idle phase's bodies: every stay at a target of at least MIN_IDLE_SECONDS, within one episode.
+    assert far["idle_bodies"] == []
+    idle = near["idle_bodies"]
+    lengths = [len(b) for b in idle]
+    assert idle and min(lengths) >= round(MIN_IDLE_SECONDS * 30) and sum(lengths) <= len(speeds)
+    assert all(b.shape[1:] == (hum.model.nbody - 1, 3) and np.isfinite(b).all() for b in idle)
     # A head "below" 3 m is a fall on every second step: one fall per episode, its target missed.
     fall = run(3, fall_height=3.0, **SHORT)
     assert fall["falls_per_episode"] == 1.0 and fall["targets"] == 3 and fall["reached_share"] == 0.0
     with pytest.raises(UserError, match="episodes"):
         run(0)
+
+
+def test_stays_are_runs_within_one_episode():
+    m = np.array([[1, 0], [1, 1], [1, 1], [0, 1], [1, 1], [1, 0]], dtype=bool)
+    ep = np.array([[0, 0], [0, 0], [0, 1], [0, 1], [0, 1], [0, 1]])
+    # env 0: steps 0-2 on, off, 4-5 on; env 1: on at 1-4 but a new episode starts at step 2
+    assert stays(m, ep, 1) == [(0, 0, 3), (0, 4, 6), (1, 1, 2), (1, 2, 5)]
+    assert stays(m, ep, 3) == [(0, 0, 3), (1, 2, 5)]
+    assert stays(np.zeros((4, 3), bool), np.zeros((4, 3), int), 1) == []
+
+
+def test_idle_motion_matching_tells_data_from_noise(hum, lib, small_dataset):
+    """Motion at the target is matched against the dataset (Eq. 8): reference motion itself comes
+    out near the data (the library is the data through the humanoid's FK at 30 Hz), the same
+    motion with 3 cm of jitter on every body far from it."""
+    segs = [lib.body_pos[lib.starts[i]:lib.starts[i] + 45] for i in range(3)]  # 1.5 s of three clips
+    rng = np.random.default_rng(0)
+    noisy = [s + rng.normal(0, 0.03, s.shape) for s in segs]
+    real = idle_matching(segs, small_dataset, lib.names, lib.fps)
+    bad = idle_matching(noisy, small_dataset, lib.names, lib.fps)
+    assert real["segments"] == 3 and real["transitions"] == 3 * (30 - 2)  # 45 steps at 30 Hz: 30 frames at 20 fps
+    assert real["distance_mean"] < real["threshold"] < bad["distance_mean"]
+    assert real["filtered_rate"] < 0.2 < 0.8 < bad["filtered_rate"]
+    none = idle_matching([], small_dataset, lib.names, lib.fps)
+    assert none["transitions"] == 0 and math.isnan(none["distance_mean"])

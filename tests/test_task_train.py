@@ -186,6 +186,8 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     assert ac.policy.heads == 2 and model.kind == "hybrid"
     res = evaluate_run(tmp_path / "straight", episodes=4, render=tmp_path / "nav.gif")
     assert res["episodes"] == 4 and 0 <= res["reached_share"] <= 1 and (tmp_path / "nav.gif").stat().st_size > 0
+    # the idle phase's motion matching is reported (NaN, with no transitions, where no stay lasted)
+    assert res["idle_transitions"] == res["idle_motion_matching"]["transitions"] and "idle_bodies" not in res
     again = evaluate_run(tmp_path / "straight", episodes=4)
     assert again["mean_reward"] == res["mean_reward"]  # a fixed seed: the same episodes
     assert json.loads((tmp_path / "straight" / "eval_navigation.json").read_text())["checkpoint"]["iteration"] == 4

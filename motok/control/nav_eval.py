@@ -1,6 +1,7 @@
 """Evaluation of a navigation policy (hybrid-latent paper, appendix C.3): how many targets are
-reached before they change, how fast, how often the character falls, and how still it stands
-once there (the idle phase)."""
+reached before they change, how fast, how often the character falls, and how it moves once
+there (the idle phase: its root speed, and the body motion itself for the motion-matching
+distance of ``motok.eval.motion_matching``, which the caller computes against the dataset)."""
 
 from __future__ import annotations
 
@@ -12,11 +13,29 @@ from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.navigation import NavigationTask
 from motok.errors import UserError
 
+MIN_IDLE_SECONDS = 0.5  # a stay at the target shorter than this is passing through, not idling
+
 
 def episode_quota(episodes: int, num_envs: int) -> np.ndarray:
     """Episodes each environment contributes, ``episodes`` in all. A fixed share per environment,
     not the first ``episodes`` to end: those would over-count short (fallen) episodes."""
     return episodes // num_envs + (np.arange(num_envs) < episodes % num_envs)
+
+
+def stays(mask: np.ndarray, episode: np.ndarray, min_steps: int) -> list[tuple[int, int, int]]:
+    """``(env, first step, end step)`` of every run of ``mask (S, N)`` that lasts ``min_steps`` or
+    more without ``episode (S, N)`` (an environment's episode counter) changing inside it."""
+    same = np.ones(mask.shape, dtype=bool)
+    same[1:] = episode[1:] == episode[:-1]
+    begin, finish = mask.copy(), mask.copy()
+    begin[1:] &= ~(mask[:-1] & same[1:])  # on, and not going on from the step before
+    finish[:-1] &= ~(mask[1:] & same[1:])  # on, and not going on into the next step
+    out = []
+    for n in np.flatnonzero(mask.any(0)):  # a loop over stays, after the rollout
+        for a, b in zip(np.flatnonzero(begin[:, n]), np.flatnonzero(finish[:, n]) + 1):
+            if b - a >= min_steps:
+                out.append((int(n), int(a), int(b)))
+    return out
 
 
 def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], episodes: int) -> dict:
@@ -28,7 +47,9 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     ``time_to_reach_mean_s`` / ``_median_s`` (over reached targets, NaN if none),
     ``falls_per_episode`` (head falls), ``diverged``, ``mean_reward`` (the main term per step),
     ``goal_speeds`` (planar root speed, m/s, of every step spent within the radius) and its
-    ``goal_speed_mean`` / ``goal_speed_median``."""
+    ``goal_speed_mean`` / ``goal_speed_median``, and ``idle_bodies``: the body positions
+    ``(T, J, 3)`` (MuJoCo frame, control rate) of every stay within the radius of at least
+    :data:`MIN_IDLE_SECONDS`, for the idle phase's motion matching."""
     if not isinstance(mdp.task, NavigationTask):
         raise UserError(f"evaluate_navigation needs a TaskEnv around a NavigationTask, got {type(mdp.task).__name__}")
     if int(episodes) < 1:
@@ -38,16 +59,21 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     done = np.zeros(mdp.num_envs, dtype=np.int64)
     targets = reached = falls = diverged = steps = 0
     reward, times, speeds = 0.0, [], []
+    # Per step: who is at its target, in which of its episodes, and the bodies of those at it.
+    at_goal, episode, bodies = [], [], []
     obs, goal = mdp.reset()
     while (done < quota).any():
         obs, goal, rewards, term, trunc, info = mdp.step(act(obs, goal))
         live = done < quota  # this step belongs to an episode that counts
+        at_goal.append(info["reached"] & live)
+        episode.append(done.copy())
+        bodies.append(mdp.env.bodies.pos[at_goal[-1]].astype(np.float32))
         ends = info["target_ends"] & live
         targets += int(ends.sum())
         hit = ends & info["target_reached"]
         reached += int(hit.sum())
         times.append(info["time_to_reach"][hit])
-        speeds.append(info["root_speed"][info["reached"] & live])
+        speeds.append(info["root_speed"][at_goal[-1]])
         falls += int((info["fell"] & term & live).sum())
         diverged += int((info["diverged"] & live).sum())
         reward += float(rewards[key][live].sum())
@@ -57,6 +83,12 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
             done[ended] += 1
             obs, goal = mdp.reset(ended)
     times, speeds = np.concatenate(times), np.concatenate(speeds)
+    min_steps = max(3, int(round(MIN_IDLE_SECONDS / mdp.dt)))
+    mask = np.stack(at_goal)
+    row = np.full(mask.shape, -1)
+    row[mask] = np.arange(int(mask.sum()))  # row-major, as the per-step rows were appended
+    pos = np.concatenate(bodies)
+    idle = [pos[row[a:b, n]] for n, a, b in stays(mask, np.stack(episode), min_steps)]
 
     def stat(f, a):
         return float(f(a)) if len(a) else float("nan")
@@ -65,4 +97,18 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
             "time_to_reach_mean_s": stat(np.mean, times), "time_to_reach_median_s": stat(np.median, times),
             "falls_per_episode": falls / int(episodes), "diverged": diverged, "mean_reward": reward / max(steps, 1),
             "goal_speeds": speeds, "goal_speed_mean": stat(np.mean, speeds),
-            "goal_speed_median": stat(np.median, speeds)}
+            "goal_speed_median": stat(np.median, speeds), "idle_bodies": idle}
+
+
+def idle_matching(idle_bodies: list[np.ndarray], data, names, hz: float) -> dict:
+    """The idle phase's naturalness: Eq. 8 motion matching (``motok.eval.motion_matching``) of
+    the transitions of ``idle_bodies`` (from :func:`evaluate_navigation`, at the control rate
+    ``hz``) against the clips ``names`` of the dataset ``data``: distance, filtered rate, coverage."""
+    from motok.control.track import from_mj
+    from motok.eval.motion_matching import match_joints, reference
+
+    if not idle_bodies:  # no stay to match: no threshold to derive either
+        nan = float("nan")
+        return {"transitions": 0, "segments": 0, "distance_mean": nan, "distance_median": nan,
+                "filtered_rate": nan, "threshold": nan}
+    return match_joints(reference(data, list(names)), [from_mj(b) for b in idle_bodies], hz)

@@ -33,6 +33,7 @@ from motok.control.distill import DistillConfig, load_prior, split_state
 from motok.control.evaluate import policy_device
 from motok.control.generate import check_codebooks
 from motok.control.highlevel import HighLevelNetConfig, LatentActionMap, action_space, build_high_level
+from motok.control.nav_eval import idle_matching
 from motok.control.networks import ActorCritic
 from motok.control.ppo import PPO, PPOConfig
 from motok.control.priors import LatentPrior
@@ -258,6 +259,10 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
     cfg.env.on(device)
     src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split)
     res = evaluate_policy(cfg, hum, lib, model, scale, ac, episodes, seed, render=render)
+    idle = res.pop("idle_bodies", None)
+    if idle is not None:  # navigation: how data-like the motion at the target is (issue 16)
+        mm = res["idle_motion_matching"] = idle_matching(idle, src, lib.names, lib.fps)
+        res.update({f"idle_{k}": mm[k] for k in ("transitions", "distance_mean", "filtered_rate")})
     res = {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in res.items()}  # JSON: per-step arrays as lists
     res = {"kind": "control-task-eval", "schema_version": 1, "task": cfg.task, "episodes": episodes, **res,
            "checkpoint": {**runner.checkpoint_info(meta), "prior": meta["extra"]["prior_info"],

@@ -247,6 +247,75 @@ def match_metrics(dist: np.ndarray, index: np.ndarray, num_data: int, threshold:
             "coverage_within_threshold": float(len(np.unique(index[kept])) / num_data)}
 
 
+@dataclass
+class Reference:
+    """The dataset side of Eq. 8: its transitions normalised by their own mean and std, and the
+    filter threshold (derived, or given)."""
+
+    data: str
+    dataset: MotionSet
+    x: np.ndarray  # (n, D) normalised
+    mean: np.ndarray
+    std: np.ndarray
+    skeleton: object
+    threshold: dict
+
+    @property
+    def fps(self) -> float:
+        return self.dataset.fps
+
+
+def reference(data, names: list[str] | None = None, *, threshold: float | None = None,
+              percentile: float = PERCENTILE, queries: int = THRESHOLD_QUERIES, seed: int = 0,
+              bar=None) -> Reference:
+    """The clips ``names`` (all by default) of the motion-dataset ``data`` as the reference of
+    Eq. 8, with the threshold of the module docstring unless ``threshold`` is given; ``bar``: a
+    progress bar to advance."""
+    from motok.data.dataset import MotionFile
+
+    with MotionFile(data) as mf:
+        skeleton = mf.skeleton
+    ds = load_set(data, names)
+    mean, std = normaliser(ds.x)
+    xd = (ds.x - mean) / std
+    if threshold is None:
+        task = bar.add_task("threshold (leave-one-clip-out)", total=min(queries, len(xd))) if bar else None
+        thr = derive_threshold(xd, ds.clip, percentile, queries, seed,
+                               advance=(lambda n: bar.advance(task, n)) if bar else None)
+    else:
+        thr = {"value": float(threshold), "definition": "given (--threshold)"}
+    return Reference(str(data), ds, xd, mean, std, skeleton, thr)
+
+
+def match(ref: Reference, rows: np.ndarray, advance=None) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 8 for raw transitions ``rows``: distance to, and index of, the nearest reference transition."""
+    return nearest((rows - ref.mean) / ref.std, ref.x, advance=advance)
+
+
+def match_joints(ref: Reference, segments, fps: float) -> dict:
+    """:func:`match_metrics` of the transitions of joint segments ``(T, J, 3)`` (the dataset's
+    frame, at ``fps``; resampled to the reference's rate), with their count; NaN metrics when
+    no segment has the 3 frames a transition needs. For motion that is no artifact, such as the
+    steps a navigation policy spends at its target."""
+    from motok.features.resample import resample_positions
+
+    rows = []
+    for j in segments:
+        j = np.asarray(j, np.float64)
+        if abs(fps - ref.fps) > 1e-6 and len(j) > 1:
+            j = resample_positions(j, fps, ref.fps)
+        t = transitions(j, ref.fps, ref.skeleton)
+        if len(t):
+            rows.append(t.astype(np.float32))
+    if not rows:
+        nan = float("nan")
+        return {"transitions": 0, "segments": 0, "distance_mean": nan, "distance_median": nan, "filtered_rate": nan,
+                "threshold": ref.threshold["value"]}
+    d, i = match(ref, np.concatenate(rows))
+    return {**match_metrics(d, i, len(ref.x), ref.threshold["value"]), "segments": len(rows),
+            "threshold": ref.threshold["value"]}
+
+
 def motion_matching(data, motions, *, clips: str | None = None, split: str | None = None,
                     threshold: float | None = None, percentile: float = PERCENTILE,
                     queries: int = THRESHOLD_QUERIES, seed: int = 0) -> dict:
@@ -254,36 +323,26 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
     ``split`` / the ``clips`` glob); ``threshold`` skips its derivation. One row per artifact."""
     from motok.artifacts import Provenance, command_line, hash_inputs
     from motok.control.clips import select_clips
-    from motok.data.dataset import MotionFile
     from motok.progress import make_progress
 
     t0 = time.perf_counter()
-    with MotionFile(data) as mf:
-        skeleton, fps = mf.skeleton, mf.fps
     names = select_clips(data, clips, split) if clips or split else None
-    ds = load_set(data, names)
-    mean, std = normaliser(ds.x)
-    xd = (ds.x - mean) / std
-    gens = [load_set(p, fps=fps, skeleton=skeleton) for p in motions]
-    out = {"kind": KIND, "schema_version": 1, "data": str(data), "clips": clips, "split": split,
-           "state": "(s_t, s_{t+1}); s = root height, root-relative joints in the heading frame, root velocity "
-                    "in the heading frame, yaw rate (backward differences); each dimension normalised by the "
-                    "dataset's transitions", "transition_dim": int(xd.shape[1]), "fps": fps,
-           "dataset": {"clips": len(ds.names), "transitions": int(len(xd)), "jitter_m_s3": ds.jitter_m_s3,
-                       "acceleration_m_s2": ds.acceleration_m_s2}}
     with make_progress("transitions") as bar:
-        if threshold is None:
-            task = bar.add_task("threshold (leave-one-clip-out)", total=min(queries, len(xd)))
-            out["threshold"] = derive_threshold(xd, ds.clip, percentile, queries, seed,
-                                                advance=lambda n: bar.advance(task, n))
-        else:
-            out["threshold"] = {"value": float(threshold), "definition": "given (--threshold)"}
-        thr = out["threshold"]["value"]
+        ref = reference(data, names, threshold=threshold, percentile=percentile, queries=queries, seed=seed,
+                        bar=bar)
+        ds, xd, thr = ref.dataset, ref.x, ref.threshold["value"]
+        gens = [load_set(p, fps=ref.fps, skeleton=ref.skeleton) for p in motions]
+        out = {"kind": KIND, "schema_version": 1, "data": str(data), "clips": clips, "split": split,
+               "state": "(s_t, s_{t+1}); s = root height, root-relative joints in the heading frame, root velocity "
+                        "in the heading frame, yaw rate (backward differences); each dimension normalised by the "
+                        "dataset's transitions", "transition_dim": int(xd.shape[1]), "fps": ref.fps,
+               "dataset": {"clips": len(ds.names), "transitions": int(len(xd)), "jitter_m_s3": ds.jitter_m_s3,
+                           "acceleration_m_s2": ds.acceleration_m_s2}, "threshold": ref.threshold}
         rows = []
         for g in gens:
             task = bar.add_task(f"match {g.path}", total=len(g.x))
             t1 = time.perf_counter()
-            d, i = nearest((g.x - mean) / std, xd, advance=lambda n, t=task: bar.advance(t, n))
+            d, i = match(ref, g.x, advance=lambda n, t=task: bar.advance(t, n))
             dt = time.perf_counter() - t1
             row = {"motion": g.path, "clips": len(g.names), **match_metrics(d, i, len(xd), thr),
                    "jitter_m_s3": g.jitter_m_s3, "acceleration_m_s2": g.acceleration_m_s2,

@@ -128,13 +128,21 @@ class CodeToPose(torch.nn.Module):
         return self.q_stand + self.offsets[k] - q
 
 
+SHORT_TASKS = {"navigation": {"episode_seconds": 2.0},
+               "inbetween": {"window_seconds": 2.0, "num_keyframes": 3, "eval_keyframes": 3},
+               "hmd": {"episode_seconds": 2.0}}
+
+
+@pytest.mark.parametrize("task", list(SHORT_TASKS))
 def test_ppo_learns_which_codes_keep_the_character_up_and_never_touches_the_prior(hum, labelled_dataset,
-                                                                                  tmp_path):
+                                                                                  tmp_path, task):
     """A discrete prior of 4 codes: code 0 holds a standing pose, the others hold it with offsets
     of up to +-1 rad on every hinge, which topple the character. Episodes start from standing
-    gesture clips; the navigation reward is paid while upright (its velocity term is > 0
-    standing still), so PPO must learn to pick code 0: the episodes lengthen to the time limit.
-    The prior's weights stay bit-identical."""
+    gesture clips; every task pays while the character stays up (navigation: its velocity term is
+    > 0 standing still; in-betweening and head tracking: the gesture's reference stays near a
+    standing pose) and ends when it falls (the head below 0.5 m, the bodies or the head far from
+    the reference), so PPO must learn to pick code 0: episodes and returns grow. The prior's
+    weights stay bit-identical."""
     from motok.control.clips import select_clips
 
     lib = load_library(hum, labelled_dataset, clips=select_clips(labelled_dataset, "dataset-2_raise-up-both-hands_*"),
@@ -153,15 +161,17 @@ def test_ppo_learns_which_codes_keep_the_character_up_and_never_touches_the_prio
     q_stand = torch.as_tensor(lib.qpos[lib.starts[0], 7:], dtype=torch.float32)
     model.decoder = CodeToPose(env.obs_dim, codes, q_stand, offsets)
     before = {k: v.clone() for k, v in model.state_dict().items()}
-    cfg = small_cfg()
-    cfg.tasks.navigation.episode_seconds = 2.0
+    cfg = small_cfg(task=task)
+    setattr(cfg.tasks, task, replace(getattr(cfg.tasks, task), **SHORT_TASKS[task]))
     tr = TaskTrainer(cfg, hum, lib, DistillConfig(), model)
     assert not ({id(p) for p in tr.ppo.params} & {id(p) for p in model.parameters()})
     tr.start_segment()
     stats = [tr.step() for _ in range(40)]
     lens = [x["episode_seconds"] for x in stats if "episode_seconds" in x]
+    rets = [x["episode_return"] for x in stats if "episode_return" in x]
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
     assert np.mean(lens[-6:]) > 1.5 * np.mean(lens[:6]), lens
+    assert np.mean(rets[-6:]) > 1.5 * np.mean(rets[:6]), rets
     x = torch.as_tensor(np.concatenate([tr.mdp.env.observation(), tr.mdp.task.goal()], 1), dtype=torch.float32)
     p0 = tr.ac.policy.log_probs(tr.ac.norm(x))[..., 0, 0].exp().mean()
     assert p0 > 0.5, float(p0)  # from 1/4 at the start (0.999 here; PPO settles on code 0 between iterations 30 and 40)

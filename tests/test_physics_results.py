@@ -70,7 +70,7 @@ def test_trainings_resume_only_from_a_checkpoint(tmp_path):
     for k in PRIORS:  # each with its own recipe and kind, at one budget
         a = distills[f"prior_{k}"]
         assert a[a.index("--prior") + 1] == k and a[a.index("--recipe") + 1] == f"recipes/control/prior_{k}.yaml"
-        assert "iterations=3000" in a
+        assert "iterations=1500" in a
 
 
 def test_outputs_that_exist_are_not_made_again(tmp_path):

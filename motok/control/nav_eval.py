@@ -105,10 +105,8 @@ def idle_matching(idle_bodies: list[np.ndarray], data, names, hz: float) -> dict
     the transitions of ``idle_bodies`` (from :func:`evaluate_navigation`, at the control rate
     ``hz``) against the clips ``names`` of the dataset ``data``: distance, filtered rate, coverage."""
     from motok.control.track import from_mj
-    from motok.eval.motion_matching import match_joints, reference
+    from motok.eval.motion_matching import match_joints, no_transitions, reference
 
     if not idle_bodies:  # no stay to match: no threshold to derive either
-        nan = float("nan")
-        return {"transitions": 0, "segments": 0, "distance_mean": nan, "distance_median": nan,
-                "filtered_rate": nan, "threshold": nan}
+        return no_transitions()
     return match_joints(reference(data, list(names)), [from_mj(b) for b in idle_bodies], hz)

@@ -292,6 +292,13 @@ def match(ref: Reference, rows: np.ndarray, advance=None) -> tuple[np.ndarray, n
     return nearest((rows - ref.mean) / ref.std, ref.x, advance=advance)
 
 
+def no_transitions(threshold: float = float("nan")) -> dict:
+    """What :func:`match_joints` reports for motion without a single transition."""
+    nan = float("nan")
+    return {"transitions": 0, "segments": 0, "distance_mean": nan, "distance_median": nan, "filtered_rate": nan,
+            "threshold": threshold}
+
+
 def match_joints(ref: Reference, segments, fps: float) -> dict:
     """:func:`match_metrics` of the transitions of joint segments ``(T, J, 3)`` (the dataset's
     frame, at ``fps``; resampled to the reference's rate), with their count; NaN metrics when
@@ -308,9 +315,7 @@ def match_joints(ref: Reference, segments, fps: float) -> dict:
         if len(t):
             rows.append(t.astype(np.float32))
     if not rows:
-        nan = float("nan")
-        return {"transitions": 0, "segments": 0, "distance_mean": nan, "distance_median": nan, "filtered_rate": nan,
-                "threshold": ref.threshold["value"]}
+        return no_transitions(ref.threshold["value"])
     d, i = match(ref, np.concatenate(rows))
     return {**match_metrics(d, i, len(ref.x), ref.threshold["value"]), "segments": len(rows),
             "threshold": ref.threshold["value"]}
@@ -323,15 +328,18 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
     ``split`` / the ``clips`` glob); ``threshold`` skips its derivation. One row per artifact."""
     from motok.artifacts import Provenance, command_line, hash_inputs
     from motok.control.clips import select_clips
+    from motok.data.dataset import MotionFile
     from motok.progress import make_progress
 
     t0 = time.perf_counter()
     names = select_clips(data, clips, split) if clips or split else None
+    with MotionFile(data) as mf:
+        skeleton, fps = mf.skeleton, mf.fps
+    gens = [load_set(p, fps=fps, skeleton=skeleton) for p in motions]  # a wrong file fails before the search
     with make_progress("transitions") as bar:
         ref = reference(data, names, threshold=threshold, percentile=percentile, queries=queries, seed=seed,
                         bar=bar)
         ds, xd, thr = ref.dataset, ref.x, ref.threshold["value"]
-        gens = [load_set(p, fps=ref.fps, skeleton=ref.skeleton) for p in motions]
         out = {"kind": KIND, "schema_version": 1, "data": str(data), "clips": clips, "split": split,
                "state": "(s_t, s_{t+1}); s = root height, root-relative joints in the heading frame, root velocity "
                         "in the heading frame, yaw rate (backward differences); each dimension normalised by the "

@@ -18,6 +18,7 @@
 #   tasks     in-betweening and head tracking over hybrid and continuous; hybrid with 1, 2, 4 codebooks on navigation (Fig. 13)
 #   taskeval  every task run evaluated; the thrown balls on the navigation runs
 #   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
+#   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
 # Settings (environment): R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations). PRIOR_IT is half the
@@ -172,7 +173,31 @@ stage_t2p() {
         -o "$K/t2m-physics.json" -o "$K/t2m-physics.md"
 }
 
-ALL=(data expert priors nav prioreval tasks taskeval t2p)
+# plot NAME KEYS RUN...: the runs that exist on one figure over samples ($R/plots/NAME.png) and one
+# over training wall time (NAME_wall.png), drawn anew each time.
+plot() {
+    local name=$1 keys=$2; shift 2
+    local runs=()
+    for d in "$@"; do [ -f "$d/metrics.jsonl" ] && runs+=("$d"); done
+    [ ${#runs[@]} -gt 0 ] || return 0
+    mkdir -p "$R/plots"
+    run plots "${M[@]}" plot "${runs[@]}" --keys "$keys" --x samples --smooth 0.95 -o "$R/plots/$name.png"
+    run plots "${M[@]}" plot "${runs[@]}" --keys "$keys" --x wall_s --smooth 0.95 -o "$R/plots/${name}_wall.png"
+}
+
+stage_plots() {
+    plot expert success,episode_seconds,r_im,samples_per_s,eval_success,eval_mpjpe_mm "$EXPERT"
+    plot priors eval_success,eval_mpjpe_mm,rollout_action_err,code_usage,samples_per_s "${PRIORS[@]/#/$R/prior_}"
+    # r_task: the task reward per step, in [0, 1]: the return normalised by its maximum
+    plot navigation r_task,episode_seconds,eval_reached_share,eval_falls_per_episode \
+        "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1"
+    plot codebooks r_task,episode_seconds,eval_reached_share "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
+        "$R/nav_hybrid_m4" "$R/nav_hybrid"
+    plot inbetween r_task,episode_seconds "$R/inbetween_hybrid" "$R/inbetween_continuous"
+    plot hmd r_task,episode_seconds "$R/hmd_hybrid" "$R/hmd_continuous"
+}
+
+ALL=(data expert priors nav prioreval tasks taskeval t2p plots)
 stages=("$@")
 [ ${#stages[@]} -gt 0 ] || stages=("${ALL[@]}")
 for s in "${stages[@]}"; do

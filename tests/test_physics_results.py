@@ -30,6 +30,7 @@ def queue(tmp_path: Path, *stages: str, checkpoints=(), outputs=()) -> list[list
     for d in checkpoints:
         (runs / d).mkdir(parents=True, exist_ok=True)
         (runs / d / "bundle.json").write_text("{}")
+        (runs / d / "metrics.jsonl").write_text("")
     for f in outputs:
         (runs / f).parent.mkdir(parents=True, exist_ok=True)
         (runs / f).write_text("")
@@ -53,6 +54,10 @@ def test_every_command_is_accepted_by_the_cli(tmp_path):
               ("eval", "motion-matching"), ("control", "train"), ("control", "perturb"), ("control", "track"),
               ("eval", "t2m"), ("gpt", "train"), ("tokenize", "train"), ("preprocess", "--recipe")]:
         assert k in kinds, k
+    plots = [a for a in cmds if a[0] == "plot"]
+    assert {out_of(a) for a in plots} >= {"expert.png", "priors.png", "navigation.png", "navigation_wall.png"}
+    priors = next(a for a in plots if out_of(a) == "priors.png")
+    assert [Path(x).name for x in priors[1:1 + len(PRIORS)]] == [f"prior_{k}" for k in PRIORS]
     runner = CliRunner()
     for argv in cmds:
         # --help after every option: click parses them all first, so an unknown option or a missing

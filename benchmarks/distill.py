@@ -30,6 +30,7 @@ from motok.control.clips import select_clips
 from motok.control.distill import DistillConfig, DistillTrainer
 from motok.control.expert import imitation_mdp, load_expert
 from motok.sim.reference import load_library
+from tasks import steps_per_s  # benchmarks/tasks.py, beside this file
 
 
 def main():
@@ -54,19 +55,7 @@ def main():
 
     mdp = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, cfg.seed)
     zeros = np.zeros((N, mdp.action_dim))
-
-    def env_rate() -> float:
-        mdp.reset()
-        steps, t0 = 0, time.perf_counter()
-        while time.perf_counter() - t0 < a.seconds:
-            _, _, _, term, trunc, _ = mdp.step(zeros)
-            done = term | trunc
-            if done.any():
-                mdp.reset(np.flatnonzero(done))
-            steps += N
-        return steps / (time.perf_counter() - t0)
-
-    env = max(env_rate() for _ in range(2))
+    env = max(steps_per_s(mdp, lambda rng: zeros, a.seconds) for _ in range(2))
     tr = DistillTrainer(cfg, hum, lib, ecfg, expert)
     tr.start_segment()
     tr.collector.collect()  # warm-up

@@ -106,3 +106,31 @@ def test_a_failing_command_stops_the_queue(tmp_path):
     p = subprocess.run(["bash", str(SCRIPT), "expert", "priors"], env=env, capture_output=True, text=True, timeout=60)
     assert p.returncode == 3
     assert "expert_set2 failed (exit 3)" in p.stdout and "stage priors" not in p.stdout
+
+
+def test_the_tables_read_the_queue_outputs(tmp_path):
+    """scripts/physics_tables.py prints nothing for an empty tree and, for a prior run and a Table 1
+    report as the queue writes them, rows with their numbers."""
+    tables = ROOT / "scripts" / "physics_tables.py"
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    p = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0 and p.stdout.strip() == ""
+    prior = runs / "prior_hybrid"
+    prior.mkdir()
+    rows = [{"iteration": i, "samples": 4096 * i, "wall_s": 1.1 * i, "samples_per_s": 3800.0, "code_usage": 0.9}
+            for i in (1, 2)]
+    (prior / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows))
+    overall = {"success_rate": 0.635, "success_rate_any_body": 0.604, "mpjpe_mm": 52.6, "g_mpjpe_mm": 114.0,
+               "root_vel_err_mm": 8.16, "root_acc_err_mm": 5.92}
+    (prior / "eval_test.json").write_text(json.dumps({"overall": overall}))
+    (runs / "table1").mkdir()
+    (runs / "table1" / "table1.json").write_text(json.dumps({
+        "threshold": {"value": 3.668, "definition": "95th percentile"},
+        "dataset": {"transitions": 10, "jitter_m_s3": 55.7},
+        "rows": [{"motion": "runs/table1/hybrid-m1.h5", "transitions": 5, "distance_mean": 1.25, "filtered_rate": 0.1,
+                  "coverage": 0.2, "coverage_within_threshold": 0.15, "jitter_m_s3": 60.0}]}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
+    assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 |" in out and "threshold 3.668" in out

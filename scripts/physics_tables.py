@@ -1,0 +1,136 @@
+"""The Markdown tables of docs/results.md from what scripts/physics_results.sh wrote, so every number
+there is read from an output file, not copied by hand:
+
+    .venv/bin/python scripts/physics_tables.py [--runs runs]    # prints the tables that have data
+
+Priors (issue 15): the imitation table (Fig. 4: train and test clips from frame 0), code usage,
+samples/s and wall time; Table 1 (motion matching). Tasks (issue 16): navigation, thrown balls,
+in-betweening and head tracking (Tables 2-3). Text to physics (issue 17): the t2m rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+PRIORS = ("hybrid", "continuous", "discrete+", "discrete", "hybrid-vq")
+
+
+def load(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def metrics(run: Path) -> list[dict]:
+    f = run / "metrics.jsonl"
+    return [json.loads(x) for x in f.read_text().splitlines()] if f.exists() else []
+
+
+def table(head: list[str], rows: list[list]) -> str:
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def pct(x) -> str:
+    return "" if x is None else f"{100 * x:.1f} %"
+
+
+def num(x, fmt="{:.1f}") -> str:
+    return "" if x is None else fmt.format(x)
+
+
+def priors(R: Path) -> str:
+    rows = []
+    for k in PRIORS:
+        run = R / f"prior_{k}"
+        m = metrics(run)
+        if not m:
+            continue
+        tr, te = load(run / "eval.json"), load(run / "eval_test.json")
+        last = m[-20:]
+        usage = [r["code_usage"] for r in last if "code_usage" in r]
+        o, t = (tr or {}).get("overall", {}), (te or {}).get("overall", {})
+        rows.append([k, m[-1]["iteration"], f"{m[-1]['samples'] / 1e6:.1f} M", f"{m[-1]['wall_s'] / 60:.0f} min",
+                     f"{statistics.median(r['samples_per_s'] for r in m):,.0f}",
+                     pct(o.get("success_rate")), pct(t.get("success_rate")), pct(t.get("success_rate_any_body")),
+                     num(t.get("mpjpe_mm")), num(t.get("g_mpjpe_mm")), num(t.get("root_vel_err_mm"), "{:.2f}"),
+                     num(t.get("root_acc_err_mm"), "{:.2f}"),
+                     num(statistics.mean(usage), "{:.2f}") if usage else "-"])
+    if not rows:
+        return ""
+    return "Imitation from frame 0 (the expert's test: mean body error > 0.5 m):\n\n" + table(
+        ["prior", "iterations", "samples", "wall", "samples/s (median)", "train played", "test played",
+         "test any body", "test MPJPE mm", "test G-MPJPE mm", "root vel. err.", "root acc. err.",
+         "code usage (last 20 it.)"], rows)
+
+
+def table1(R: Path) -> str:
+    rep = load(R / "table1" / "table1.json")
+    if rep is None:
+        return ""
+    rows = [[Path(r["motion"]).stem, r["transitions"], f"{r['distance_mean']:.3f}", pct(r["filtered_rate"]),
+             pct(r["coverage"]), pct(r["coverage_within_threshold"]), f"{r['jitter_m_s3']:.1f}"] for r in rep["rows"]]
+    d = rep["dataset"]
+    rows.append(["dataset", d["transitions"], "", "", "", "", f"{d['jitter_m_s3']:.1f}"])
+    return (f"Table 1 (threshold {rep['threshold']['value']:.3f}: {rep['threshold']['definition']}):\n\n"
+            + table(["motion", "transitions", "distance", "filtered", "coverage", "coverage <= thr", "jitter m/s^3"],
+                    rows))
+
+
+def tasks(R: Path) -> str:
+    out = []
+    nav = []
+    for run in sorted(R.glob("nav_*")):
+        e, p, m = load(run / "eval_navigation.json"), load(run / "perturb.json"), metrics(run)
+        if e is None or not m:
+            continue
+        nav.append([run.name, f"{m[-1]['samples'] / 1e6:.1f} M", f"{m[-1]['wall_s'] / 60:.0f} min",
+                    pct(e["reached_share"]), num(e["time_to_reach_mean_s"], "{:.2f}"),
+                    num(e["falls_per_episode"], "{:.2f}"), num(e["goal_speed_mean"], "{:.2f}"),
+                    num(e.get("idle_distance_mean"), "{:.2f}"), pct(e.get("idle_filtered_rate")),
+                    "" if p is None else f"{p['hits']} / {p['falls']} / {p['recoveries']} / {pct(p['reached_share'])}"])
+    if nav:
+        out.append(table(["run", "samples", "wall", "targets reached", "time to reach s", "falls / episode",
+                          "speed at goal m/s", "idle distance", "idle filtered",
+                          "balls: hits / falls / recoveries / reached"], nav))
+    for task in ("inbetween", "hmd"):
+        rows = []
+        for run in sorted(R.glob(f"{task}_*")):
+            e, m = load(run / f"eval_{task}.json"), metrics(run)
+            if e is None or not m:
+                continue
+            keys = ["mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"]
+            if task == "inbetween":
+                keys = [f"keyframe_{k}" for k in keys] + keys
+            else:
+                keys = keys + ["head_error_mm"]
+            rows.append([run.name, f"{m[-1]['samples'] / 1e6:.1f} M", pct(e["success_rate"])]
+                        + [f"{e[k + '_mean']:.1f} +- {e[k + '_std']:.1f}" for k in keys])
+        if rows:
+            heads = ["MPJPE", "G-MPJPE", "vel. err.", "acc. err."]
+            if task == "inbetween":
+                heads = [f"keyframes {h}" for h in heads] + [f"all frames {h}" for h in heads]
+            else:
+                heads = heads + ["head error"]
+            out.append(table(["run", "samples", "success"] + heads, rows))
+    return "\n\n".join(out)
+
+
+def t2p(R: Path) -> str:
+    md = R / "kinematic" / "t2m-physics.md"
+    return md.read_text() if md.exists() else ""
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=Path, default=Path("runs"))
+    R = ap.parse_args().runs
+    for part in (priors(R), table1(R), tasks(R), t2p(R)):
+        if part:
+            print(part + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from motok.config import load_config
-from motok.control.clips import select_clips
+from motok.data.dataset import select_clips
 from motok.control.distill import DistillConfig, DistillTrainer
 from motok.control.expert import imitation_mdp, load_expert
 from motok.sim.reference import load_library

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from motok.config import load_config
-from motok.control.clips import select_clips
+from motok.data.dataset import select_clips
 from motok.control.distill import DistillConfig, load_prior
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.priors import LatentPrior

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.control.clips import select_clips
+from motok.data.dataset import select_clips
 from motok.control.evaluate import evaluate
 from motok.control.expert import imitation_mdp, load_expert
 from motok.sim.humanoid import HumanoidConfig, load_humanoid

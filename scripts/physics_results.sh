@@ -197,7 +197,7 @@ stage_plots() {
     plot hmd r_task,episode_seconds "$R/hmd_hybrid" "$R/hmd_continuous"
 }
 
-ALL=(data expert priors nav prioreval tasks taskeval t2p plots)
+ALL=(data expert priors prioreval nav tasks taskeval t2p plots)
 stages=("$@")
 [ ${#stages[@]} -gt 0 ] || stages=("${ALL[@]}")
 for s in "${stages[@]}"; do

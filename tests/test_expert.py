@@ -266,7 +266,7 @@ def test_control_expert_commands(small_dataset, hum, tmp_path, monkeypatch):
     r = runner.invoke(app, ["--quiet", "control", "expert", "eval", "--run", str(run), "--split", "test", "--json"])
     assert r.exit_code == 0, r.output
     test = json.loads((run / "eval_test.json").read_text())
-    from motok.control.clips import select_clips
+    from motok.data.dataset import select_clips
     names = select_clips(small_dataset, None, "test")
     assert sorted(test["clips"]) == sorted(names) and test["groups"]["content"]["walk"]["clips"] == len(names)
     assert test["groups"]["style"]["normal"]["success_rate"] == test["overall"]["success_rate"]

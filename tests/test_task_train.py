@@ -143,7 +143,7 @@ def test_ppo_learns_which_codes_keep_the_character_up_and_never_touches_the_prio
     standing pose) and ends when it falls (the head below 0.5 m, the bodies or the head far from
     the reference), so PPO must learn to pick code 0: episodes and returns grow. The prior's
     weights stay bit-identical."""
-    from motok.control.clips import select_clips
+    from motok.data.dataset import select_clips
 
     lib = load_library(hum, labelled_dataset, clips=select_clips(labelled_dataset, "dataset-2_raise-up-both-hands_*"),
                        cache_dir=tmp_path)

@@ -113,7 +113,7 @@ def pd_track_cmd(
 
     def go():
         from motok.control.baselines import pd_track_run
-        from motok.control.clips import select_clips
+        from motok.data.dataset import select_clips
         chosen = [_key(clip)] if clip is not None else (select_clips(data, clips) if clips else None)
         return pd_track_run(*_setup(data, humanoid, hz, chosen), seconds, out, stick)
 

@@ -33,7 +33,7 @@ import torch
 from motok.checkpoint import bundle_ref, read_meta, register_kind
 from motok.config import from_dict
 from motok.control import runner
-from motok.control.clips import select_clips
+from motok.data.dataset import select_clips
 from motok.control.dagger import DaggerBatch, DaggerCollector, StudentPolicy
 from motok.control.evaluate import eval_metrics, evaluate, subset
 from motok.control.expert import KIND as EXPERT_KIND, imitation_mdp, load_expert, split_state

@@ -30,7 +30,7 @@ from motok.atomic import atomic_path
 from motok.checkpoint import register_kind
 from motok.config import from_dict
 from motok.control import runner
-from motok.control.clips import select_clips
+from motok.data.dataset import select_clips
 from motok.control.amp import AMP, AMPConfig, AMPHook, reference_observations
 from motok.control.evaluate import by_group, eval_metrics, evaluate, subset, summarise
 from motok.control.mdp.actions import ActionConfig, pd_targets

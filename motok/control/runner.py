@@ -144,7 +144,7 @@ def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: st
     """``(dataset, library)`` to evaluate a run on: its own dataset and clips unless ``data``,
     ``clips`` (a glob) or ``split`` say otherwise."""
     from motok.checkpoint import bundle_ref
-    from motok.control.clips import select_clips
+    from motok.data.dataset import select_clips
     from motok.sim.reference import load_library
 
     src = data or bundle_ref(Path(run), meta, "data", hint=hint)

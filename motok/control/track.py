@@ -90,7 +90,7 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
     """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with ``controller``, a
     ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
     returns, and write the simulated clips to ``out``. Returns per-clip and overall results."""
-    from motok.control.clips import select_clips
+    from motok.data.dataset import select_clips
 
     cfg, hum, ac, meta = controller
     motion, out = Path(motion), Path(out)

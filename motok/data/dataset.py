@@ -8,6 +8,7 @@ loader slices contiguous rows instead of opening one HDF5 group per clip.
 
 from __future__ import annotations
 
+import fnmatch
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,7 +17,7 @@ import numpy as np
 
 from motok.artifacts import Provenance, open_artifact, provenance_of, read_strings, write_artifact, write_strings
 from motok.data.skeleton import Skeleton
-from motok.errors import UnknownNameError
+from motok.errors import UnknownNameError, UserError
 
 MOTION_KINDS = ("motion-dataset", "motion")
 
@@ -173,3 +174,21 @@ class MotionFile:
 
 def _str(v) -> str:
     return v.decode("utf-8") if isinstance(v, bytes) else str(v)
+
+
+def select_clips(data, pattern: str | None, split: str | None = None) -> list[str]:
+    """Names of the clips of the motion artifact at ``data`` in ``split`` (train, val, test;
+    all if None) matching the glob ``pattern`` (all if None)."""
+    with MotionFile(data) as mf:
+        names = list(mf.names)
+        if split is not None:
+            if split not in mf.splits:
+                raise UserError(f"{data} has no split {split!r} (it has {sorted(mf.splits)})")
+            names = [names[i] for i in mf.split_indices(split)]
+    if not pattern:
+        return names
+    chosen = [n for n in names if fnmatch.fnmatchcase(n, pattern)]
+    if not chosen:
+        where = f" in split {split!r}" if split else ""
+        raise UserError(f"no clip of {data}{where} matches {pattern!r} (e.g. {names[:3]})")
+    return chosen

@@ -25,10 +25,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from motok.data.dataset import select_clips
 from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp
 from motok.control.mdp.actions import ActionConfig
 from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.data.dataset import select_clips
 from motok.sim.env import SimConfig
 from motok.sim.reference import humanoid_for, load_library
 

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.data.dataset import select_clips
 from motok.control.evaluate import evaluate
 from motok.control.expert import imitation_mdp, load_expert
+from motok.data.dataset import select_clips
 from motok.sim.humanoid import HumanoidConfig, load_humanoid
 from motok.sim.mjcf import humanoid_xml, measure_humanoid
 from motok.sim.reference import load_library

@@ -33,7 +33,6 @@ import torch
 from motok.checkpoint import bundle_ref, read_meta, register_kind
 from motok.config import from_dict
 from motok.control import runner
-from motok.data.dataset import select_clips
 from motok.control.dagger import DaggerBatch, DaggerCollector, StudentPolicy
 from motok.control.evaluate import eval_metrics, evaluate, subset
 from motok.control.expert import KIND as EXPERT_KIND, imitation_mdp, load_expert, split_state
@@ -42,6 +41,7 @@ from motok.control.networks import ActorCritic
 from motok.control.ppo import average_gradients, world_size
 from motok.control.priors import KINDS, LatentPrior, Latents, PriorConfig, squared_norm
 from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.data.dataset import select_clips
 from motok.distributed import Dist
 from motok.errors import UserError
 from motok.sim.env import SimConfig

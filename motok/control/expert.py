@@ -30,7 +30,6 @@ from motok.atomic import atomic_path
 from motok.checkpoint import register_kind
 from motok.config import from_dict
 from motok.control import runner
-from motok.data.dataset import select_clips
 from motok.control.amp import AMP, AMPConfig, AMPHook, reference_observations
 from motok.control.evaluate import by_group, eval_metrics, evaluate, subset, summarise
 from motok.control.mdp.actions import ActionConfig, pd_targets
@@ -41,6 +40,7 @@ from motok.control.rollout import Collector
 from motok.control.sampling import DifficultySampler, SamplingConfig, failures
 from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
+from motok.data.dataset import select_clips
 from motok.distributed import Dist, gather
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig

@@ -327,8 +327,7 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
     """Table 1 for each motion artifact in ``motions`` against the clips of ``data`` (all, or
     ``split`` / the ``clips`` glob); ``threshold`` skips its derivation. One row per artifact."""
     from motok.artifacts import Provenance, command_line, hash_inputs
-    from motok.data.dataset import select_clips
-    from motok.data.dataset import MotionFile
+    from motok.data.dataset import MotionFile, select_clips
     from motok.progress import make_progress
 
     t0 = time.perf_counter()

@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import json
+import math
+import numbers
 import os
 import re
 import socket
@@ -94,6 +97,39 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def finite_or_null(obj):
+    """``obj`` with every NaN or infinity replaced by None, recursively through dicts, lists and
+    tuples; numpy and torch scalars and arrays become Python numbers and lists; other values
+    unchanged."""
+    if type(obj).__module__ in ("numpy", "torch") and hasattr(obj, "tolist"):
+        return finite_or_null(obj.tolist())
+    if isinstance(obj, numbers.Real) and not isinstance(obj, numbers.Integral):
+        x = float(obj)
+        return x if math.isfinite(x) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_null(v) for v in obj]
+    return obj
+
+
+def strict_json(obj, *, default=str) -> str:
+    """``obj`` as indented JSON that every parser reads.
+
+    Python's ``json`` writes a missing number as a bare ``NaN``, which jq, JavaScript and most
+    parsers reject; motok's results say ``null`` instead (a time to reach when no target was
+    reached, a rate over nothing). ``default`` serialises what JSON lacks (paths, dtypes)."""
+    return json.dumps(finite_or_null(obj), indent=2, default=default, allow_nan=False)
+
+
+def write_json(path: str | os.PathLike, obj, *, default=str) -> Path:
+    """Write :func:`strict_json` of ``obj`` to ``path`` atomically, with one final newline."""
+    text = strict_json(obj, default=default) + "\n"
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
 
 
 def check_writable(path: str | os.PathLike, *, folder: bool = False, suffixes: tuple[str, ...] = (),

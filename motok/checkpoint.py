@@ -36,7 +36,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from motok.artifacts import Provenance
-from motok.atomic import atomic_path
+from motok.atomic import atomic_path, write_json
 from motok.errors import MissingFileError, MotokError
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
@@ -100,8 +100,7 @@ def save_bundle(run: str | Path, kind: str, model_state: dict[str, torch.Tensor]
         "kind": kind, "schema_version": schema_version, "provenance": json.loads(provenance.to_json()),
         "config": config, "extra": extra, "refs": refs, "model_sha256": sha256_state(tensors),
     }
-    with atomic_path(run / "bundle.json") as tmp:
-        tmp.write_text(json.dumps(meta, indent=2, default=str))
+    write_json(run / "bundle.json", meta)
     return run
 
 

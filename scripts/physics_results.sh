@@ -21,7 +21,9 @@
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
 # Settings (environment): R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
-# 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations). PRIOR_IT is half the
+# 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
+# GEN_N=64 samples of GEN_SECONDS=30 s per Table 1 row, EVAL_N=256 task episodes, BALLS_N=64
+# thrown-ball episodes (small values make a dry run of the whole queue at toy size). PRIOR_IT is half the
 # recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/results.md). Both
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
@@ -37,6 +39,10 @@ NICE=${NICE:-5}
 EXPERT_IT=${EXPERT_IT:-13000}
 PRIOR_IT=${PRIOR_IT:-1500}
 TASK_IT=${TASK_IT:-3000}
+GEN_N=${GEN_N:-64}
+GEN_SECONDS=${GEN_SECONDS:-30}
+EVAL_N=${EVAL_N:-256}
+BALLS_N=${BALLS_N:-64}
 DATA=$R/bandai2.h5
 EXPERT=$R/expert_set2
 export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
@@ -111,7 +117,7 @@ stage_prioreval() {
             local cb=() tag=$k
             [ "$m" != all ] && cb=(--codebooks "$m") && tag=$k-m$m
             once "$R/table1/$tag.h5" generate "${M[@]}" control generate --prior "$p" "${cb[@]}" \
-                --seconds 30 -n 64 --seed 0 -o "$R/table1/$tag.h5"
+                --seconds "$GEN_SECONDS" -n "$GEN_N" --seed 0 -o "$R/table1/$tag.h5"
             gens+=(--motions "$R/table1/$tag.h5")
         done
     done
@@ -150,8 +156,8 @@ stage_taskeval() {
         [ -f "$dir/bundle.json" ] || continue
         local t=navigation
         case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
-        once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n 256 --render "$dir/$t.mp4"
-        [ "$t" = navigation ] && once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n 64 \
+        once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" --render "$dir/$t.mp4"
+        [ "$t" = navigation ] && once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" \
             --render "$dir/balls.mp4"
     done
     return 0

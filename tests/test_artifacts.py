@@ -8,7 +8,7 @@ import pytest
 
 from motok import __version__
 from motok.artifacts import ArtifactError, Provenance, hash_inputs, open_artifact, provenance_of, write_artifact
-from motok.atomic import atomic_path
+from motok.atomic import atomic_path, write_json
 
 
 def _prov(**kw):
@@ -52,6 +52,32 @@ def test_atomic_path_replaces_only_on_success_and_keeps_the_suffix(tmp_path, nam
             tmp.write_bytes(b"half")
             raise KeyboardInterrupt
     assert target.read_bytes() == b"first" and [p.name for p in target.parent.iterdir()] == [name]
+
+
+def _strict(text):
+    """Parse as a strict JSON reader (jq, JavaScript) would: NaN and Infinity are errors."""
+    import json
+
+    def reject(c):
+        raise ValueError(f"not JSON: {c}")
+    return json.loads(text, parse_constant=reject)
+
+
+def test_results_json_is_strict_and_atomic(tmp_path):
+    from pathlib import Path
+
+    path = tmp_path / "eval.json"
+    obj = {"reached": 0.0, "time": float("nan"), "top": float("inf"), "n": 3, "ok": True,
+           "per": [1.5, np.float32("nan"), np.float64(-np.inf), (np.float32(0.25), np.int64(7))],
+           "nested": {"empty": float("nan"), "where": Path("runs/x"), "mask": np.array([True, False])}}
+    write_json(path, obj)
+    got = _strict(path.read_text())
+    assert got == {"reached": 0.0, "time": None, "top": None, "n": 3, "ok": True,
+                   "per": [1.5, None, None, [0.25, 7]], "nested": {"empty": None, "where": "runs/x", "mask": [True, False]}}
+    assert obj["time"] != obj["time"]  # the caller's object is left as it was
+    with pytest.raises(TypeError):  # what JSON cannot hold fails, and the old file stays whole
+        write_json(path, {"x": object()}, default=None)
+    assert _strict(path.read_text()) == got and [p.name for p in tmp_path.iterdir()] == ["eval.json"]
 
 
 def test_written_files_get_the_ordinary_mode(tmp_path):

@@ -200,7 +200,12 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     assert res["idle_transitions"] == res["idle_motion_matching"]["transitions"] and "idle_bodies" not in res
     again = evaluate_run(tmp_path / "straight", episodes=4)
     assert again["mean_reward"] == res["mean_reward"]  # a fixed seed: the same episodes
-    assert json.loads((tmp_path / "straight" / "eval_navigation.json").read_text())["checkpoint"]["iteration"] == 4
+    written = json.loads((tmp_path / "straight" / "eval_navigation.json").read_text(),
+                         parse_constant=lambda c: pytest.fail(f"eval_navigation.json holds {c}: not JSON"))
+    assert written["checkpoint"]["iteration"] == 4
+    # a number the evaluation could not take (no target reached, no idle stay) is null in the file
+    for key in ("time_to_reach_mean_s", "idle_distance_mean"):
+        assert (written[key] is None) == bool(np.isnan(again[key])), key
     with pytest.raises(CheckpointError):
         load_task_run(tiny_prior)
     with pytest.raises(UserError, match="navigation"):

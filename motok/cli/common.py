@@ -8,7 +8,6 @@ stage CLIs, so nothing here may import ``motok.cli.main``. Importing this module
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -17,6 +16,7 @@ import typer
 from rich.console import Console
 
 from motok import progress
+from motok.atomic import strict_json
 from motok.errors import MotokError
 
 __all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "data_option",
@@ -62,7 +62,7 @@ def existing(ctx: typer.Context, param, value):
 # --------------------------------------------------------------------------- output
 
 def print_json(obj) -> None:
-    typer.echo(json.dumps(obj, indent=2, default=str))
+    typer.echo(strict_json(obj))  # null, not NaN: jq and other parsers reject NaN
 
 
 def wrote(summary: dict, as_json: bool, *paths) -> None:

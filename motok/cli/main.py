@@ -15,7 +15,7 @@ import typer
 
 from motok import __version__, progress
 from motok.cli.common import (H5, DataRoot, JsonOut, Sets, choose_mujoco_gl, data_option, existing, output_option,
-                              recipe_option, report, results, run, wrote)
+                              print_json, recipe_option, report, results, run, wrote)
 from motok.cli.control import app as control_app
 from motok.cli.conventions import MotokGroup, examples, renamed
 from motok.cli.eval import app as eval_app
@@ -113,7 +113,7 @@ def info(path: Path = typer.Argument(..., help="Any motok artifact (.h5) or chec
     from motok.info import describe, print_description
     d = run(describe, path, captions)
     if as_json:
-        typer.echo(json.dumps(d, indent=2, default=str))
+        print_json(d)
     else:
         print_description(d, results)
 

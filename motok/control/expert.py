@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import atomic_path
+from motok.atomic import write_json
 from motok.checkpoint import register_kind
 from motok.config import from_dict
 from motok.control import runner
@@ -302,6 +302,5 @@ def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None 
                                                         "task": asdict(cfg.task)},
                       inputs=hash_inputs([src]))
     res = {"kind": "control-expert-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
-    with atomic_path(run / (f"eval_{split}.json" if split else "eval.json")) as tmp:
-        tmp.write_text(json.dumps(res, indent=2))
+    write_json(run / (f"eval_{split}.json" if split else "eval.json"), res)
     return res

@@ -240,7 +240,7 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
     from pathlib import Path
 
     from motok.artifacts import Provenance, command_line
-    from motok.atomic import atomic_path
+    from motok.atomic import write_json
     from motok.control import runner
     from motok.control.task_train import load_task_run, policy_fn, task_mdp
     from motok.sim.balls import build_ball_model
@@ -269,7 +269,6 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
     res["provenance"] = json.loads(Provenance(command=command_line(), config={"run": str(run), "episodes": episodes,
                                                                              "seed": seed}).to_json())
     out = run / "perturb.json"
-    with atomic_path(out) as tmp:
-        tmp.write_text(json.dumps(res, indent=2, default=str))
+    write_json(out, res)
     res["written"] = str(out)
     return res

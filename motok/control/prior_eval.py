@@ -10,7 +10,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import atomic_path
+from motok.atomic import write_json
 from motok.control import runner
 from motok.control.dagger import StudentPolicy
 from motok.control.distill import load_prior
@@ -50,7 +50,6 @@ def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None
                       inputs=hash_inputs([src]))
     res = {"kind": "control-prior-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
     name = "eval" + (f"_{split}" if split else "") + (f"_m{codebooks}" if codebooks else "") + ".json"
-    with atomic_path(run / name) as tmp:
-        tmp.write_text(json.dumps(res, indent=2))
+    write_json(run / name, res)
     res["written"] = str(run / name)
     return res

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import atomic_path
+from motok.atomic import write_json
 from motok.checkpoint import read_meta, register_kind
 from motok.config import from_dict
 from motok.control import runner
@@ -272,7 +272,6 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
                       inputs=hash_inputs([src]))
     res["provenance"] = json.loads(prov.to_json())
     path = run / (f"eval_{cfg.task}" + (f"_{split}" if split else "") + ".json")
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(res, indent=2, default=str))
+    write_json(path, res)
     res["written"] = str(path)
     return res

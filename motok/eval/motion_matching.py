@@ -369,11 +369,14 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
 
 def save(rep: dict, paths) -> None:
     """The whole report to each ``.json`` path, the table (:func:`markdown`) to each ``.md``."""
-    from motok.atomic import atomic_path
+    from motok.atomic import atomic_path, write_json
 
     for p in map(Path, paths):
-        with atomic_path(p) as tmp:
-            tmp.write_text(json.dumps(rep, indent=2) if p.suffix.lower() == ".json" else markdown(rep))
+        if p.suffix.lower() == ".json":
+            write_json(p, rep)
+        else:
+            with atomic_path(p) as tmp:
+                tmp.write_text(markdown(rep))
 
 
 COLUMNS = (("transitions", "transitions", "{:d}"), ("distance_mean", "distance ↓", "{:.3f}"),

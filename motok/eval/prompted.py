@@ -134,12 +134,11 @@ def labels_report(data: str | Path, *, motions: list[Path] = (), gpt: str | Path
     """``motok eval labels``: the classifier's own test accuracy, then one row per ``--motions``
     artifact, per ``--gpt`` (generated for the prompt sets) and per ``--retrieval`` encoder, each
     scored per prompt set; ``out`` gets the report as JSON (atomic)."""
-    import json
     import shutil
     import tempfile
     import time
 
-    from motok.atomic import atomic_path
+    from motok.atomic import write_json
     from motok.eval.labels import LabelsConfig, caption_lookup, classifier_for, evaluate_motions
 
     t0 = time.perf_counter()
@@ -175,8 +174,7 @@ def labels_report(data: str | Path, *, motions: list[Path] = (), gpt: str | Path
            "prompt_sets": list(sets), "prompt_split": prompt_split, "rows": rows,
            "seconds": round(time.perf_counter() - t0, 1)}
     if out is not None:
-        with atomic_path(out) as p:
-            Path(p).write_text(json.dumps(rep, indent=2) + "\n", encoding="utf-8")
+        write_json(out, rep)
     return rep
 
 

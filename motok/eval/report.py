@@ -8,12 +8,12 @@ length, :mod:`motok.eval.generate`), or any ``motion`` artifact; each is a motio
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from motok.atomic import atomic_path, write_json
 from motok.data.dataset import MotionFile
 from motok.eval import metrics as M
 from motok.eval.captions import label_ceiling, training_captions, unseen_only
@@ -141,11 +141,11 @@ def markdown(report: dict) -> str:
 
 def save_report(report: dict, json_path: Path | None = None, md_path: Path | None = None) -> None:
     """Write the full report as JSON and/or its table as Markdown (``--out-json``, ``--out-md``)."""
-    for path, text in ((json_path, lambda: json.dumps(report, indent=2, default=str)),
-                       (md_path, lambda: markdown(report) + "\n")):
-        if path is not None:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            Path(path).write_text(text())
+    if json_path is not None:
+        write_json(json_path, report)
+    if md_path is not None:
+        with atomic_path(md_path) as tmp:
+            tmp.write_text(markdown(report) + "\n")
 
 
 def rich_table(report: dict):

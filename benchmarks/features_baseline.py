@@ -183,8 +183,8 @@ def _rate(fn, frames, repeats=7, batch_time=0.3):
 
 def main():
     from motok.data.root import resolve_data_root
-    from motok.data.skeleton import load_skeleton
     from motok.features.humanml3d import extract_features
+    from motok.skeleton import load_skeleton
 
     torch.set_num_threads(1)
     golden_dir = resolve_data_root() / "humanml3d-sample"

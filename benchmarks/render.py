@@ -31,7 +31,7 @@ from motok.render.stick import render_frames, render_motion  # noqa: E402
 
 
 def load_clip() -> tuple[np.ndarray, np.ndarray, float, str]:
-    from motok.data.skeleton import load_skeleton
+    from motok.skeleton import load_skeleton
 
     parents = np.asarray(load_skeleton("smpl22").parents)
     try:

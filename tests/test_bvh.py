@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from motok.data.bvh import BvhMotion, MotionFormatError, parse_bvh, read_bvh
 from motok.data.export import write_bvh
-from motok.data.skeleton import detect_skeleton
 from motok.data.sources import iter_sources
+from motok.skeleton import detect_skeleton
 
 BANDAI_NAMES = ["joint_Root", "Hips", "Spine", "Chest", "Neck", "Head",
                 "Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R",

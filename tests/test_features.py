@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from motok.data.skeleton import load_skeleton
 from motok.features import kinematics
 from motok.features.humanml3d import (
     SMPL_LEG_LENGTH, STD_EPS, contact_threshold, extract_features, feature_slices, forward_kinematics,
@@ -17,6 +16,7 @@ from motok.features.humanml3d import (
     resample_quats, skeleton_offsets,
 )
 from motok.rotations import euler_to_quat, qmul, qrot, quat_to_euler, yaw_quat
+from motok.skeleton import load_skeleton
 
 # HumanML3D paramUtil.t2m_raw_offsets / t2m_kinematic_chain, by joint index.
 T2M_RAW_OFFSETS = np.array([

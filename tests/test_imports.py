@@ -145,3 +145,40 @@ def test_cycle_finder_sees_lazy_relative_and_submodule_imports(tmp_path):
     graph = import_graph(pkg)
     assert graph["pkg.a"] == {"pkg", "pkg.sub", "pkg.sub.b"} and graph["pkg.sub.c"] == {"pkg", "pkg.a"}
     assert find_cycles(graph) == [(["pkg.a", "pkg.sub.b", "pkg.sub.c", "pkg.a"], {"pkg.a", "pkg.sub.b", "pkg.sub.c"})]
+
+
+def folder_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The import graph between the package's rooms: every module stands for its stage folder
+    (``motok.data.bvh`` -> ``motok.data``) or itself at the top (``motok.atomic``); the package's
+    own ``__init__`` is left out (importing anything runs it)."""
+    def room(m: str) -> str:
+        return ".".join(m.split(".")[:2])
+    out: dict[str, set[str]] = {}
+    for m, deps in graph.items():
+        if m == "motok":
+            continue
+        out.setdefault(room(m), set()).update(room(d) for d in deps if d != "motok")
+    for r, deps in out.items():
+        deps.discard(r)
+    return out
+
+
+def test_no_cycles_between_stage_folders():
+    """The stages are layers: a folder that imports another is never imported back by it (the
+    data <-> features and tokenizer <-> eval loops once were), so each can be read, tested and
+    replaced from the bottom up."""
+    graph = folder_graph(import_graph())
+    assert {"motok.data", "motok.features", "motok.control", "motok.skeleton"} <= set(graph)
+    cycles = [" -> ".join(c) for c, _ in find_cycles(graph)]
+    assert not cycles, "stage folders importing each other:\n  " + "\n  ".join(cycles)
+
+
+def test_folder_graph_joins_a_loop_through_two_files_of_one_folder(tmp_path):
+    pkg = tmp_path / "motok"
+    for rel, text in {"__init__.py": "", "low/__init__.py": "", "low/a.py": "from motok.high import b\n",
+                      "low/c.py": "", "high/__init__.py": "", "high/b.py": "from motok.low import c\n"}.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    graph = import_graph(pkg)
+    assert find_cycles(graph) == []  # no file loop: a -> b -> c
+    assert [c for c, _ in find_cycles(folder_graph(graph))] == [["motok.high", "motok.low", "motok.high"]]

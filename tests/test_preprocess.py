@@ -14,8 +14,8 @@ from motok.data.bvh import MotionFormatError
 from motok.data.dataset import MotionFile
 from motok.data.preprocess import PreprocessConfig, preprocess
 from motok.data.root import DataRootError, resolve_data_root
-from motok.data.skeleton import SkeletonError
 from motok.features.humanml3d import feature_slices, recover_from_ric
+from motok.skeleton import SkeletonError
 
 from conftest import SLICE_PATTERN
 

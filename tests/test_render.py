@@ -103,7 +103,7 @@ def test_contacts_are_highlighted():
 
 
 def test_joint_sides_on_smpl(golden_joints):
-    from motok.data.skeleton import load_skeleton
+    from motok.skeleton import load_skeleton
 
     skel = load_skeleton("smpl22")
     sides = joint_sides(golden_joints[0], skel.parents)

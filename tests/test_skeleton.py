@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from motok.data.bvh import read_bvh
-from motok.data.skeleton import SkeletonError, builtin_names, detect_skeleton, load_skeleton
+from motok.skeleton import SkeletonError, builtin_names, detect_skeleton, load_skeleton
 
 
 def test_builtins():

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from motok.artifacts import Provenance, open_artifact, provenance_of, read_strings, write_artifact, write_strings
-from motok.data.skeleton import Skeleton
 from motok.errors import UnknownNameError, UserError
+from motok.skeleton import Skeleton
 
 MOTION_KINDS = ("motion-dataset", "motion")
 

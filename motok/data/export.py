@@ -25,9 +25,9 @@ import numpy as np
 
 from motok.atomic import atomic_path
 from motok.data.dataset import MotionFile
-from motok.data.skeleton import Skeleton
 from motok.errors import UserError
 from motok.rotations import kabsch, matrix_to_quat, qbetween, qinv, qmul, qrot, quat_to_euler
+from motok.skeleton import Skeleton
 
 
 def _levels(parents: np.ndarray) -> list[np.ndarray]:

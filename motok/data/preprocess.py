@@ -33,12 +33,12 @@ from motok.data.annotations import Annotations
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.data.dataset import Clip, write_motion
 from motok.data.root import DataRootError, resolve_data_root
-from motok.data.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
 from motok.data.sources import MotionSource, count_sources, iter_sources, load_npy_positions
 from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
+from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
 
 
 BANDAI_FOLDER = "bandai-namco"  # under the data root

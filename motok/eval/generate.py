@@ -30,8 +30,8 @@ def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MCon
 
     from motok.artifacts import Provenance, command_line
     from motok.data.dataset import write_motion
-    from motok.data.skeleton import Skeleton
     from motok.gpt.sample import generate, load_for_sampling
+    from motok.skeleton import Skeleton
     from motok.tokenizer.tokens import features_to_clip
 
     model, meta, tok, tok_meta, tok_run, cache = load_for_sampling(gpt, tokenizer, error=EvaluatorError)

@@ -28,6 +28,9 @@ import warnings
 
 import numpy as np
 
+# The reconstruction metrics are the kinematics' joint-trajectory errors, named here with the others.
+from motok.features.kinematics import acceleration_error, mpjpe, velocity_error  # noqa: F401
+
 R_PRECISION_BATCH = 32
 DIVERSITY_TIMES = 300
 MM_PAIRS = 10
@@ -181,34 +184,3 @@ def mean_ci(values, z: float = 1.96) -> tuple[float, float]:
     and the reference evaluation)."""
     v = np.asarray(values, np.float64)
     return float(v.mean()), float(z * v.std() / np.sqrt(len(v)))
-
-
-# --------------------------------------------------------------------------- reconstruction
-
-def mpjpe(pred: np.ndarray, gt: np.ndarray, root_relative: bool = True) -> np.ndarray:
-    """``(T,)`` per-frame mean per-joint position error in mm of ``(T, J, 3)`` joints in metres.
-
-    ``root_relative``: both skeletons are moved to their own root first (the MoMask/HumanML3D
-    convention), which ignores drift of the integrated root trajectory.
-    """
-    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
-    if root_relative:
-        p, g = p - p[:, :1], g - g[:, :1]
-    return np.linalg.norm(p - g, axis=-1).mean(-1) * 1000.0
-
-
-def velocity_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """``(T - 1,)`` per-frame mean norm of the difference of first differences (mm/frame) of
-    ``(T, J, 3)`` joints in metres; pass ``x[:, :1]`` for the root alone."""
-    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
-    return np.linalg.norm(np.diff(p, axis=0) - np.diff(g, axis=0), axis=-1).mean(-1) * 1000.0
-
-
-def acceleration_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """``(T - 2,)`` per-frame mean norm of the difference of second differences (mm/frame^2) of
-    ``(T, J, 3)`` joints in metres, as in HMR-style video work: it measures jitter the position
-    error averages away."""
-    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
-    ap = p[2:] - 2 * p[1:-1] + p[:-2]
-    ag = g[2:] - 2 * g[1:-1] + g[:-2]
-    return np.linalg.norm(ap - ag, axis=-1).mean(-1) * 1000.0

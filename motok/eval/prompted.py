@@ -47,8 +47,8 @@ def generate_prompts(gpt: str | Path, data: str | Path, out: str | Path, *, sets
     ``seed + 1000 i + j``), decoded and written to ``out``."""
     import torch
 
-    from motok.data.skeleton import Skeleton
     from motok.gpt.sample import check_guidance, generate, load_for_sampling
+    from motok.skeleton import Skeleton
     from motok.tokenizer.tokens import features_to_clip
 
     if samples < 1:

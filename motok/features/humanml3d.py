@@ -13,13 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from motok.data.skeleton import Skeleton
 from motok.features.kinematics import (
     bone_rotations, forward_direction, forward_kinematics, inverse_kinematics, leg_length,
     locals_from_globals, root_quat, root_rotation, skeleton_offsets, uniform_skeleton,
 )
 from motok.features.resample import resample_positions, resample_quats
 from motok.rotations import cont6d_to_matrix, matrix_to_quat, qinv, qmul, qrot, quat_to_cont6d, quat_to_matrix
+from motok.skeleton import Skeleton
 
 try:
     import torch

@@ -22,6 +22,9 @@ The parent frame ``frame(c)`` is where the two conventions differ:
 Because IK and FK share ``frame``, ``FK(IK(x))`` puts every bone of ``x`` back in place in
 both conventions (with the bone lengths of ``offsets``). No loop runs over frames; IK has no
 loop at all, FK loops over depth levels of the ``frame`` tree.
+
+Also here: the errors between two joint trajectories (``mpjpe``, ``velocity_error``,
+``acceleration_error``) that the tokenizer, the evaluation and the control stage all measure.
 """
 
 from __future__ import annotations
@@ -32,8 +35,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from motok.data.skeleton import Skeleton
 from motok.rotations import qinv, qmul, qrot
+from motok.skeleton import Skeleton
 
 UP = np.array([0.0, 1.0, 0.0])
 FORWARD = np.array([0.0, 0.0, 1.0])
@@ -209,3 +212,34 @@ def uniform_skeleton(positions: np.ndarray, skeleton: Skeleton, target_offsets: 
     scale = leg_length(tgt, skeleton) / leg_length(src, skeleton)
     bones = qrot(bone_rotations(x, skeleton), tgt[1:])
     return scale * x[:, None, 0] + _plan(skeleton, False).ancestors @ bones
+
+
+# --------------------------------------------------------------------------- errors between joint trajectories
+
+def mpjpe(pred: np.ndarray, gt: np.ndarray, root_relative: bool = True) -> np.ndarray:
+    """``(T,)`` per-frame mean per-joint position error in mm of ``(T, J, 3)`` joints in metres.
+
+    ``root_relative``: both skeletons are moved to their own root first (the MoMask/HumanML3D
+    convention), which ignores drift of the integrated root trajectory.
+    """
+    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    if root_relative:
+        p, g = p - p[:, :1], g - g[:, :1]
+    return np.linalg.norm(p - g, axis=-1).mean(-1) * 1000.0
+
+
+def velocity_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(T - 1,)`` per-frame mean norm of the difference of first differences (mm/frame) of
+    ``(T, J, 3)`` joints in metres; pass ``x[:, :1]`` for the root alone."""
+    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    return np.linalg.norm(np.diff(p, axis=0) - np.diff(g, axis=0), axis=-1).mean(-1) * 1000.0
+
+
+def acceleration_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(T - 2,)`` per-frame mean norm of the difference of second differences (mm/frame^2) of
+    ``(T, J, 3)`` joints in metres, as in HMR-style video work: it measures jitter the position
+    error averages away."""
+    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    ap = p[2:] - 2 * p[1:-1] + p[:-2]
+    ag = g[2:] - 2 * g[1:-1] + g[:-2]
+    return np.linalg.norm(ap - ag, axis=-1).mean(-1) * 1000.0

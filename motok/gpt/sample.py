@@ -32,9 +32,9 @@ from motok.artifacts import Provenance, command_line
 from motok.atomic import check_writable
 from motok.checkpoint import bundle_ref
 from motok.data.dataset import write_motion
-from motok.data.skeleton import Skeleton
 from motok.gpt.model import MotionGPT
 from motok.gpt.train import GPTError, load_gpt
+from motok.skeleton import Skeleton
 from motok.text.cache import TextEmbeddingCache
 from motok.text.encoders import get_encoder
 

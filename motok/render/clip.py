@@ -7,9 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from motok.data.dataset import Clip, MotionFile
-from motok.data.skeleton import Skeleton
 from motok.features.humanml3d import NUM_CONTACTS
 from motok.render.stick import render_motion
+from motok.skeleton import Skeleton
 
 
 def render_clip(clip: Clip, skeleton: Skeleton, out, fps: float, *, max_frames: int | None = None) -> Path:

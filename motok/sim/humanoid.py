@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.data.skeleton import Skeleton
 from motok.errors import MotokError
+from motok.skeleton import Skeleton
 
 META_NAME = "motok_humanoid"
 META_VERSION = 1

@@ -26,10 +26,10 @@ import numpy as np
 from motok.artifacts import command_line, hash_inputs
 from motok.atomic import atomic_path
 from motok.data.dataset import MotionFile
-from motok.data.skeleton import Skeleton
 from motok.sim.humanoid import (META_NAME, META_VERSION, UP, HumanoidConfig, Layout, joint_chain, load_humanoid,
                                 make_layout, to_mj)
 from motok.sim.retarget import rest_geometry, solve_pose
+from motok.skeleton import Skeleton
 
 
 def _fmt(v) -> str:

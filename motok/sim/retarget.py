@@ -31,10 +31,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from motok.data.skeleton import Skeleton
 from motok.features.resample import resample_positions, resample_quats
 from motok.rotations import kabsch, matrix_to_quat, qbetween, qfix, qinv, qmul, qrot, quat_to_euler
 from motok.sim.humanoid import Humanoid, Layout, to_mj
+from motok.skeleton import Skeleton
 
 BEND_BLEND = 0.02  # |thigh x shin| (sine of the bend) below which the swing axis takes over
 

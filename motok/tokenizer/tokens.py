@@ -20,8 +20,9 @@ from motok.artifacts import (ArtifactError, Provenance, command_line, hash_input
                              read_strings, write_artifact, write_strings)
 from motok.checkpoint import relative_to
 from motok.data.dataset import Clip, MotionFile, write_motion
-from motok.data.skeleton import Skeleton
 from motok.features.humanml3d import recover_from_ric, recover_local_quats
+from motok.features.kinematics import acceleration_error, mpjpe
+from motok.skeleton import Skeleton
 from motok.tokenizer.train import TokenizerError, load_tokenizer
 
 KIND = "tokens"
@@ -205,8 +206,6 @@ def reconstruction_errors(pred: np.ndarray, gt: np.ndarray, num_joints: int) -> 
     ``mpjpe_global``: with the integrated root trajectory (drift included); ``accel``: norm of
     the difference of second differences of global joints (mm/frame^2, jitter).
     """
-    from motok.eval.metrics import acceleration_error, mpjpe  # the shared implementation; numpy only, no cycle
-
     p = recover_from_ric(np.asarray(pred, np.float64), num_joints)
     g = recover_from_ric(np.asarray(gt, np.float64), num_joints)
     return {"mpjpe": mpjpe(p, g), "mpjpe_global": mpjpe(p, g, root_relative=False), "accel": acceleration_error(p, g)}

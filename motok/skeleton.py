@@ -5,7 +5,7 @@ canonical T-pose (Y up, facing +Z, the character's left on +X), the kinematic ch
 HumanML3D inverse kinematics walks, and the joints that features need: the face joints
 (right hip, left hip, right shoulder, left shoulder), the foot joints for contacts, the leg
 bones used for scaling, the head and the end effectors. Built-in definitions live in
-``motok/data/skeletons/*.yaml``; a user passes a path to a YAML file of the same form.
+``motok/skeletons/*.yaml``; a user passes a path to a YAML file of the same form.
 """
 
 from __future__ import annotations

@@ -88,11 +88,13 @@ def tasks(R: Path) -> str:
             continue
         nav.append([run.name, f"{m[-1]['samples'] / 1e6:.1f} M", f"{m[-1]['wall_s'] / 60:.0f} min",
                     pct(e["reached_share"]), num(e["time_to_reach_mean_s"], "{:.2f}"),
+                    num(e.get("closest_distance_mean_m"), "{:.2f}"), pct(e.get("approach_share")),
                     num(e["falls_per_episode"], "{:.2f}"), num(e["goal_speed_mean"], "{:.2f}"),
                     num(e.get("idle_distance_mean"), "{:.2f}"), pct(e.get("idle_filtered_rate")),
                     "" if p is None else f"{p['hits']} / {p['falls']} / {p['recoveries']} / {pct(p['reached_share'])}"])
     if nav:
-        out.append(table(["run", "samples", "wall", "targets reached", "time to reach s", "falls / episode",
+        out.append(table(["run", "samples", "wall", "targets reached", "time to reach s", "closest approach m",
+                          "distance closed", "falls / episode",
                           "speed at goal m/s", "idle distance", "idle filtered",
                           "balls: hits / falls / recoveries / reached"], nav))
     for task in ("inbetween", "hmd"):

@@ -252,6 +252,19 @@ def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
     # A head "below" 3 m is a fall on every second step: one fall per episode, its target missed.
     fall = run(3, fall_height=3.0, **SHORT)
     assert fall["falls_per_episode"] == 1.0 and fall["targets"] == 3 and fall["reached_share"] == 0.0
+    # Per target: the distance when it appeared (drawn 5-10 m around the root) and the closest approach.
+    st, cl = far["start_distances"], far["closest_distances"]
+    assert len(st) == len(cl) == far["targets"] and ((st >= 5 - 1e-9) & (st <= 10 + 1e-9)).all()
+    assert far["approach_share"] == pytest.approx(np.mean(1 - cl / st))
+    assert far["start_distance_mean_m"] == pytest.approx(st.mean()) and far["closest_distance_mean_m"] == cl.mean()
+    for res in (far, near, fall, run(4, min_distance=0.0, max_distance=10.0, early_termination=False, **SHORT)):
+        st, cl = res["start_distances"], res["closest_distances"]
+        # a character holding its pose drifts at most ~1 m in a target's 0.5 s: the closest approach is the
+        # start distance of *this* target less that drift (a start or minimum carried over from the target
+        # before would break it), and a target is reached exactly when it came within the radius
+        assert (cl <= st + 1e-9).all() and (st - cl <= 1.0).all() and (cl >= 0).all()
+        assert int((cl < 0.5).sum()) == round(res["reached_share"] * res["targets"])
+        assert 0.0 <= res["approach_share"] <= 1.0
     with pytest.raises(UserError, match="episodes"):
         run(0)
 

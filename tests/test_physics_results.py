@@ -130,7 +130,14 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
         "dataset": {"transitions": 10, "jitter_m_s3": 55.7},
         "rows": [{"motion": "runs/table1/hybrid-m1.h5", "transitions": 5, "distance_mean": 1.25, "filtered_rate": 0.1,
                   "coverage": 0.2, "coverage_within_threshold": 0.15, "jitter_m_s3": 60.0}]}))
+    nav = runs / "nav_hybrid"  # no target reached: the time to reach is null in the (strict) JSON
+    nav.mkdir()
+    (nav / "metrics.jsonl").write_text(json.dumps({"iteration": 3, "samples": 6_144_000, "wall_s": 1500.0}))
+    (nav / "eval_navigation.json").write_text(json.dumps({
+        "reached_share": 0.0, "time_to_reach_mean_s": None, "closest_distance_mean_m": 4.25, "approach_share": 0.4,
+        "falls_per_episode": 0.5, "goal_speed_mean": None, "idle_distance_mean": None, "idle_filtered_rate": None}))
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
                          timeout=60).stdout
+    assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |  |" in out, out
     assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
     assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 |" in out and "threshold 3.668" in out

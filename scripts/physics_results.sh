@@ -195,7 +195,7 @@ stage_plots() {
     plot expert success,episode_seconds,r_im,samples_per_s,eval_success,eval_mpjpe_mm "$EXPERT"
     plot priors eval_success,eval_mpjpe_mm,rollout_action_err,code_usage,samples_per_s "${PRIORS[@]/#/$R/prior_}"
     # r_task: the task reward per step, in [0, 1]: the return normalised by its maximum
-    plot navigation r_task,episode_seconds,eval_reached_share,eval_falls_per_episode \
+    plot navigation r_task,episode_seconds,eval_reached_share,eval_approach_share,eval_falls_per_episode \
         "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1"
     plot codebooks r_task,episode_seconds,eval_reached_share "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
         "$R/nav_hybrid_m4" "$R/nav_hybrid"

@@ -2,6 +2,7 @@
 there is read from an output file, not copied by hand:
 
     .venv/bin/python scripts/physics_tables.py [--runs runs]    # prints the tables that have data
+    .venv/bin/python scripts/physics_tables.py --status         # where every run of the queue stands
 
 Priors (issue 15): the imitation table (Fig. 4: train and test clips from frame 0), code usage,
 samples/s and wall time; Table 1 (motion matching). Tasks (issue 16): navigation, thrown balls,
@@ -125,10 +126,45 @@ def t2p(R: Path) -> str:
     return md.read_text() if md.exists() else ""
 
 
+# The latest evaluation each kind of run logs while training, for the status lines.
+PROGRESS_KEYS = ("eval_success", "eval_reached_share", "eval_approach_share", "eval_mpjpe_mm")
+
+
+def status(R: Path) -> str:
+    """One line per run folder: iteration, samples, logged wall time, recent samples/s, the latest
+    evaluation logged while training, and the evaluation files already written; then the last line
+    of the queue's log (what runs, or why it stopped)."""
+    rows = []
+    for run in sorted(p for p in R.glob("**/metrics.jsonl") if "logs" not in p.parts):
+        m = metrics(run.parent)
+        if not m:
+            continue
+        last = m[-1]
+        rate = [r["samples_per_s"] for r in m[-50:] if "samples_per_s" in r]
+        evals = {k: r[k] for r in m for k in PROGRESS_KEYS if r.get(k) is not None}
+        seen = ", ".join(f"{k.removeprefix('eval_')} {v:.3g} (it {next(r['iteration'] for r in reversed(m) if k in r)})"
+                         for k, v in evals.items())
+        files = ", ".join(sorted(p.name for p in run.parent.glob("*.json") if p.name != "bundle.json"))
+        rows.append([str(run.parent.relative_to(R)), last.get("iteration", ""), f"{last.get('samples', 0) / 1e6:.1f} M",
+                     f"{last.get('wall_s', 0) / 3600:.2f} h", f"{statistics.median(rate):,.0f}" if rate else "",
+                     seen, files])
+    out = [table(["run", "iteration", "samples", "wall", "samples/s (last 50)", "latest evaluation", "evaluated"],
+                 rows)] if rows else []
+    log = R / "logs" / "queue.log"
+    if log.exists() and log.read_text().strip():
+        out.append("queue: " + log.read_text().strip().splitlines()[-1])
+    return "\n\n".join(out)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=Path, default=Path("runs"))
-    R = ap.parse_args().runs
+    ap.add_argument("--status", action="store_true", help="where every run stands instead of the tables")
+    args = ap.parse_args()
+    R = args.runs
+    if args.status:
+        print(status(R))
+        return
     for part in (priors(R), table1(R), tasks(R), t2p(R)):
         if part:
             print(part + "\n")

@@ -141,3 +141,21 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
     assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |  |" in out, out
     assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
     assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 |" in out and "threshold 3.668" in out
+
+
+def test_the_status_says_where_each_run_stands(tmp_path):
+    tables = ROOT / "scripts" / "physics_tables.py"
+    runs = tmp_path / "runs"
+    (runs / "logs").mkdir(parents=True)
+    (runs / "logs" / "queue.log").write_text("[14:00:00] stage expert\n[14:00:01] expert_set2: motok control ...\n")
+    expert = runs / "expert_set2"
+    expert.mkdir()
+    rows = [{"iteration": i, "samples": 4096 * i, "wall_s": 3.6 * i, "samples_per_s": 4000.0 + i} for i in (1, 2, 3)]
+    rows[1].update(eval_success=0.5, eval_mpjpe_mm=50.0)
+    (expert / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows))
+    (expert / "eval_val.json").write_text("{}")
+    (expert / "bundle.json").write_text("{}")
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs), "--status"], capture_output=True,
+                         text=True, timeout=60).stdout
+    assert "| expert_set2 | 3 | 0.0 M | 0.00 h | 4,002 | success 0.5 (it 2), mpjpe_mm 50 (it 2) | eval_val.json |" in out
+    assert out.strip().endswith("queue: [14:00:01] expert_set2: motok control ...")

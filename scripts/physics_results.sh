@@ -23,7 +23,9 @@
 # Settings (environment): R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
 # GEN_N=64 samples of GEN_SECONDS=30 s per Table 1 row, EVAL_N=256 task episodes, BALLS_N=64
-# thrown-ball episodes (small values make a dry run of the whole queue at toy size). PRIOR_IT is half the
+# thrown-ball episodes; KIN_IT (unset: the recipes') iterations of the evaluator, tokenizer and GPT
+# of t2p, and T2M_RECIPE=recipes/eval/t2m.yaml its protocol (small values make a dry run of the whole
+# queue at toy size). PRIOR_IT is half the
 # recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/results.md). Both
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
@@ -44,6 +46,9 @@ GEN_N=${GEN_N:-64}
 GEN_SECONDS=${GEN_SECONDS:-30}
 EVAL_N=${EVAL_N:-256}
 BALLS_N=${BALLS_N:-64}
+KIN=()
+[ -n "${KIN_IT:-}" ] && KIN=(--set iterations="$KIN_IT")
+T2M_RECIPE=${T2M_RECIPE:-recipes/eval/t2m.yaml}
 DATA=$R/bandai2.h5
 EXPERT=$R/expert_set2
 export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
@@ -167,16 +172,17 @@ stage_taskeval() {
 stage_t2p() {
     local K=$R/kinematic P=$R/prior_hybrid
     mkdir -p "$K"
-    once "$K/bow-v2/bundle.json" evaluator "${M[@]}" eval train-evaluator -d "$DATA" --recipe recipes/eval/evaluator.yaml -o "$K/bow-v2"
-    train "$K/tokenizer" tokenizer "${M[@]}" tokenize train -d "$DATA" --recipe recipes/tokenizer/ema_reset.yaml
+    once "$K/bow-v2/bundle.json" evaluator "${M[@]}" eval train-evaluator -d "$DATA" --recipe recipes/eval/evaluator.yaml \
+        "${KIN[@]}" -o "$K/bow-v2"
+    train "$K/tokenizer" tokenizer "${M[@]}" tokenize train -d "$DATA" --recipe recipes/tokenizer/ema_reset.yaml "${KIN[@]}"
     once "$K/tokens.h5" tokens "${M[@]}" tokenize encode -t "$K/tokenizer" -d "$DATA" -o "$K/tokens.h5"
-    train "$K/gpt" gpt "${M[@]}" gpt train -d "$K/tokens.h5" --recipe recipes/gpt/default.yaml
+    train "$K/gpt" gpt "${M[@]}" gpt train -d "$K/tokens.h5" --recipe recipes/gpt/default.yaml "${KIN[@]}"
     once "$K/generated.h5" t2m "${M[@]}" eval t2m -e "$K/bow-v2" -d "$DATA" -t "$K/tokenizer" --gpt "$K/gpt" \
-        --recipe recipes/eval/t2m.yaml --save-generated "$K/generated.h5" -o "$K/t2m-kinematic.json" -o "$K/t2m-kinematic.md"
+        --recipe "$T2M_RECIPE" --save-generated "$K/generated.h5" -o "$K/t2m-kinematic.json" -o "$K/t2m-kinematic.md"
     once "$K/generated_sim.h5" track "${M[@]}" control track -d "$K/generated.h5" --prior "$P" -o "$K/generated_sim.h5" --json
     once "$K/real_test_sim.h5" track "${M[@]}" control track -d "$DATA" --split test --prior "$P" -o "$K/real_test_sim.h5" --json
     once "$K/t2m-physics.json" t2m "${M[@]}" eval t2m -e "$K/bow-v2" -d "$DATA" --motions "$K/generated.h5" \
-        --motions "$K/generated_sim.h5" --motions "$K/real_test_sim.h5" --recipe recipes/eval/t2m.yaml \
+        --motions "$K/generated_sim.h5" --motions "$K/real_test_sim.h5" --recipe "$T2M_RECIPE" \
         -o "$K/t2m-physics.json" -o "$K/t2m-physics.md"
 }
 

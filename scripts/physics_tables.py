@@ -122,8 +122,19 @@ def tasks(R: Path) -> str:
 
 
 def t2p(R: Path) -> str:
-    md = R / "kinematic" / "t2m-physics.md"
-    return md.read_text() if md.exists() else ""
+    K = R / "kinematic"
+    md = K / "t2m-physics.md"
+    out = [md.read_text().rstrip()] if md.exists() else []
+    rows = []
+    for name in ("generated_sim", "real_test_sim"):  # what `motok control track` wrote beside each
+        t = load(K / f"{name}.track.json")
+        if t is not None:
+            rows.append([name, t["clips"], t["written"], pct(t["tracked_to_end"]), num(t["mpjpe_mm"]),
+                         num(t["g_mpjpe_mm"])])
+    if rows:
+        out.append(table(["tracked motion", "clips", "written", "tracked to the end", "MPJPE mm", "G-MPJPE mm"],
+                         rows))
+    return "\n\n".join(out)
 
 
 # The latest evaluation each kind of run logs while training, for the status lines.

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from motok.artifacts import Provenance
 from motok.control.expert import ExpertConfig, build_actor_critic, imitation_mdp
-from motok.control.track import from_mj, place_on_floor, track
+from motok.control.track import from_mj, place_on_floor, report_path, track
 from motok.data.dataset import MotionFile, write_motion
 from motok.eval.metrics import mpjpe
 from motok.sim.humanoid import to_mj
@@ -59,6 +59,11 @@ def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, smal
             err = float(mpjpe(s.joints[:n], g.joints[:n]).mean())
             assert 0.5 * r["mpjpe_mm"] < err < 1.5 * r["mpjpe_mm"] + 10.0, (err, r["mpjpe_mm"])
             assert abs(r["floor_shift_m"]) < 0.05  # dataset motion already stands on the floor
+    # the results beside the motion, for tables made later (strict JSON, the same numbers)
+    saved = json.loads(report_path(out).read_text(), parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
+    assert report_path(out).name == "tracked.track.json" and saved["kind"] == "control-track"
+    assert saved["per_clip"] == res["per_clip"] and saved["tracked_to_end"] == res["tracked_to_end"]
+    assert saved["provenance"]["config"]["clips"] == "dataset-2_walk_normal_00[1-3]"
     from motok.cli.main import app
 
     runner = CliRunner()

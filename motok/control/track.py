@@ -23,12 +23,14 @@ translation all describe the simulated motion. A clip that fails keeps the part 
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
+from motok.atomic import write_json
 from motok.control.evaluate import play
 from motok.control.mdp.resets import RESET_CLEARANCE
 from motok.data.dataset import Clip, MotionFile, write_motion
@@ -89,7 +91,8 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
           batch: int = 256) -> dict:
     """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with ``controller``, a
     ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
-    returns, and write the simulated clips to ``out``. Returns per-clip and overall results."""
+    returns, and write the simulated clips to ``out``, and the per-clip and overall results beside
+    it (:func:`report_path`, kind ``control-track``), which it also returns."""
     from motok.data.dataset import select_clips
 
     cfg, hum, ac, meta = controller
@@ -155,4 +158,16 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
         path, backend = render_trajectory(hum, qpos[:played + 1], render, hz, ghost=ghost,
                                           title=f"tracked {lib.names[0]}")
         summary["video"] = f"{path} ({backend})"
+    write_json(report_path(out), {"kind": REPORT_KIND, "schema_version": 1, **summary, "per_clip": ordered,
+                                  "provenance": json.loads(prov.to_json())})
     return {**summary, "per_clip": ordered}
+
+
+REPORT_KIND = "control-track"
+
+
+def report_path(out) -> Path:
+    """Where :func:`track` writes its results for the simulated motion ``out``: ``walk_sim.h5`` ->
+    ``walk_sim.track.json`` (tracked to the end, seconds, MPJPE and G-MPJPE per clip and overall)."""
+    out = Path(out)
+    return out.with_name(out.stem + ".track.json")

@@ -194,8 +194,10 @@ plot() {
     for d in "$@"; do [ -f "$d/metrics.jsonl" ] && runs+=("$d"); done
     [ ${#runs[@]} -gt 0 ] || return 0
     mkdir -p "$R/plots"
-    run plots "${M[@]}" plot "${runs[@]}" --keys "$keys" --x samples --smooth 0.95 -o "$R/plots/$name.png"
-    run plots "${M[@]}" plot "${runs[@]}" --keys "$keys" --x wall_s --smooth 0.95 -o "$R/plots/${name}_wall.png"
+    # --missing-ok: a run stopped early (or a dry run) may not have logged an evaluation yet
+    run plots "${M[@]}" plot "${runs[@]}" --keys "$keys" --x samples --smooth 0.95 --missing-ok -o "$R/plots/$name.png"
+    run plots "${M[@]}" plot "${runs[@]}" --keys "$keys" --x wall_s --smooth 0.95 --missing-ok \
+        -o "$R/plots/${name}_wall.png"
 }
 
 stage_plots() {

@@ -164,11 +164,13 @@ def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its met
          x: str = typer.Option("iteration", "--x", help="Field on the x axis, e.g. samples."),
          x2: Optional[str] = typer.Option(None, "--x2", help="Second x axis on top, e.g. wall_s."),
          smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve."),
+         missing_ok: bool = typer.Option(False, "--missing-ok", help="Leave out, with a warning, --keys that no "
+                                         "run has logged yet (at least one must be there)."),
          as_json: bool = JsonOut):
     """Plot training curves from metrics JSONL to PNG; several runs on the same subplots to compare them."""
     from motok.render.plot import plot_run
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
-    dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2)
+    dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2, missing_ok=missing_ok)
     src = [str(m) for m in metrics]
     wrote({"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2},
           as_json)

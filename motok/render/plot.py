@@ -8,7 +8,7 @@ import math
 import os
 import warnings
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 from motok.atomic import atomic_path, check_writable
 from motok.errors import MissingFileError, UserError
@@ -86,7 +86,7 @@ def _records(src) -> tuple[list[dict], str]:
 
 def plot_curves(jsonl_path_or_records, out_png: str | os.PathLike, keys: Sequence[str] | None = None,
                 x: str = "iteration", *, smooth: float = 0.0, logy: bool | Sequence[str] = False,
-                title: str | None = None, x2: str | None = None) -> Path:
+                title: str | None = None, x2: str | None = None, missing_ok: bool = False) -> Path:
     """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
 
     The source is a JSONL path or records, or a mapping ``{label: path or records}`` of several
@@ -98,14 +98,15 @@ def plot_curves(jsonl_path_or_records, out_png: str | os.PathLike, keys: Sequenc
     labels a second, top axis with another field that grows with ``x`` (e.g. ``samples`` below,
     ``wall_s`` on top), read off by interpolation; one run only, since runs differ in speed.
     """
-    fig = _figure(jsonl_path_or_records, keys, x, smooth=smooth, logy=logy, title=title, x2=x2)
+    fig = _figure(jsonl_path_or_records, keys, x, smooth=smooth, logy=logy, title=title, x2=x2,
+                  missing_ok=missing_ok)
     out = Path(out_png)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     return out
 
 
-def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None):
+def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, missing_ok=False):
     if not 0.0 <= smooth < 1.0:
         raise UserError(f"smooth must be in [0, 1), got {smooth}")
     many = isinstance(source, Mapping)
@@ -120,6 +121,11 @@ def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None):
         keys = [k for k in available if k != x]
     keys = list(keys)
     unknown = [k for k in keys if k not in available]
+    if unknown and missing_ok and len(unknown) < len(keys):
+        # e.g. a short run that has logged no evaluation yet: draw what there is, say what is not
+        warnings.warn(f"{names}: no metric {', '.join(map(repr, unknown))} in the log yet; drawing the others",
+                      stacklevel=3)
+        keys, unknown = [k for k in keys if k in available], []
     if unknown:
         raise UserError(f"{names}: no metric {', '.join(map(repr, unknown))} in the log; it has: "
                         f"{', '.join(available) or '(nothing numeric)'}")

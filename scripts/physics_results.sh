@@ -8,6 +8,9 @@
 #   scripts/physics_results.sh priors tasks    # only these stages (names below)
 #   kill -TERM PID                             # the training under way stops at its next checkpoint,
 #                                              # and the queue stops after it
+#   mkdir -p runs/dry && ln -s ../bandai2.h5 runs/dry/ && R=runs/dry EXPERT_IT=40 PRIOR_IT=20 TASK_IT=10 \
+#     GEN_N=4 GEN_SECONDS=3 EVAL_N=8 BALLS_N=4 KIN_IT=20 T2M_RECIPE=recipes/eval/t2m_toy.yaml \
+#     scripts/physics_results.sh                 # every stage at toy size (~35 min on 2 cores)
 #
 # Stages, most important first (each waits for what it reads):
 #   data      runs/bandai2.h5, Bandai-Namco set 2 preprocessed

@@ -468,5 +468,8 @@ def test_every_eval_recipe_loads():
     for path in sorted(root.glob("*.yaml")):
         if path.stem.startswith("evaluator"):
             assert resolve_config(path).iterations >= 1
+        elif path.stem.endswith("_toy"):  # dry runs and smoke tests only: small, and said so
+            cfg = load_config(T2MConfig, path)
+            assert cfg.repeats < 20 and cfg.gen_sets <= cfg.repeats and "measure nothing" in path.read_text()
         else:
             assert load_config(T2MConfig, path).repeats == 20

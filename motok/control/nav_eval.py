@@ -77,7 +77,7 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     while (done < quota).any():
         obs, goal, rewards, term, trunc, info = mdp.step(act(obs, goal))
         live = done < quota  # this step belongs to an episode that counts
-        closest = np.minimum(closest, info["distance"])
+        closest = np.fmin(closest, info["distance"])  # a diverged step (NaN) does not erase the approach
         at_goal.append(info["reached"] & live)
         episode.append(done.copy())
         bodies.append(mdp.env.bodies.pos[at_goal[-1]].astype(np.float32))

@@ -99,6 +99,31 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+@contextlib.contextmanager
+def atomic_paths(*paths: str | os.PathLike) -> Iterator[list[Path]]:
+    """:func:`atomic_path` for files that belong together (a checkpoint's weights, training state
+    and the metadata that vouches for both): yield a temporary sibling for each, and only when the
+    block has written them all rename them into place, one right after the other in the order
+    given. A crash or kill while writing (seconds, for a large training state) leaves the old set
+    whole; only one between two renames (microseconds) could mix old and new, so the file that
+    readers check the others against goes last."""
+    paths = [Path(p) for p in paths]
+    tmps = []
+    try:
+        for path in paths:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            remove_stale_temp_files(path)
+            tmps.append(path.with_name(temp_name(path)))
+        yield tmps
+        for tmp in tmps:
+            os.chmod(tmp, 0o666 & ~_UMASK)
+        for tmp, path in zip(tmps, paths):
+            os.replace(tmp, path)
+    finally:
+        for tmp in tmps:
+            tmp.unlink(missing_ok=True)
+
+
 def finite_or_null(obj):
     """``obj`` with every NaN or infinity replaced by None, recursively through dicts, lists and
     tuples; numpy and torch scalars and arrays become Python numbers and lists; other values

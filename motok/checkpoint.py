@@ -10,8 +10,9 @@ RUN/
   metrics.jsonl        one JSON object per logged step (appended during training)
 ```
 
-Writes go to temporary names and are renamed into place, model first and ``bundle.json``
-last, so a bundle whose ``bundle.json`` exists is complete. Loading checks the weights against
+Writes go to temporary names, and only when all are written are they renamed into place, model
+first and ``bundle.json`` last (:func:`motok.atomic.atomic_paths`): a bundle whose ``bundle.json``
+exists is complete, and a checkpoint interrupted while saving leaves the previous one whole. Loading checks the weights against
 ``model_sha256``: a bundle whose weights were replaced or damaged refuses to load instead of
 producing plausible-looking nonsense.
 
@@ -36,7 +37,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from motok.artifacts import Provenance
-from motok.atomic import atomic_path, write_json
+from motok.atomic import atomic_paths, strict_json
 from motok.errors import MissingFileError, MotokError
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
@@ -87,11 +88,6 @@ def save_bundle(run: str | Path, kind: str, model_state: dict[str, torch.Tensor]
     run = Path(run)
     run.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in model_state.items()}
-    with atomic_path(run / "model.safetensors") as tmp:
-        save_file(tensors, str(tmp))
-    if train_state is not None:
-        with atomic_path(run / "train_state.pt") as tmp:
-            torch.save(train_state, tmp)
     extra = dict(extra or {})
     refs = sorted(k for k, v in extra.items() if isinstance(v, os.PathLike))
     for k in refs:
@@ -100,7 +96,14 @@ def save_bundle(run: str | Path, kind: str, model_state: dict[str, torch.Tensor]
         "kind": kind, "schema_version": schema_version, "provenance": json.loads(provenance.to_json()),
         "config": config, "extra": extra, "refs": refs, "model_sha256": sha256_state(tensors),
     }
-    write_json(run / "bundle.json", meta)
+    # One set: a training killed while saving (a session's end) keeps its last checkpoint whole,
+    # instead of new weights beside a bundle.json whose hash refuses them.
+    files = ["model.safetensors"] + (["train_state.pt"] if train_state is not None else []) + ["bundle.json"]
+    with atomic_paths(*(run / f for f in files)) as tmps:
+        save_file(tensors, str(tmps[0]))
+        if train_state is not None:
+            torch.save(train_state, tmps[1])
+        tmps[-1].write_text(strict_json(meta) + "\n", encoding="utf-8")
     return run
 
 

@@ -116,3 +116,30 @@ def test_wrong_kind_and_version_are_named(tmp_path):
     junk.write_text("hello")
     with pytest.raises(ArtifactError, match="not an HDF5 file"):
         open_artifact(junk)
+
+
+def test_a_checkpoint_interrupted_while_saving_leaves_the_last_one_whole(tmp_path, monkeypatch):
+    """A training killed in the seconds a checkpoint takes to write (a session's end) must resume
+    from the previous checkpoint, not find new weights beside a bundle.json that refuses them."""
+    import torch
+
+    from motok.checkpoint import load_bundle, register_kind, save_bundle
+
+    register_kind("test-ckpt")
+    run = tmp_path / "run"
+    old = {"w": torch.arange(4.0)}
+    save_bundle(run, "test-ckpt", old, {"lr": 1}, _prov(), train_state={"iteration": torch.tensor(100)})
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt  # stands for the kill, after the new weights were already written
+    monkeypatch.setattr(torch, "save", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_bundle(run, "test-ckpt", {"w": torch.zeros(4)}, {"lr": 1}, _prov(),
+                    train_state={"iteration": torch.tensor(200)})
+    monkeypatch.undo()
+    meta, state, ts = load_bundle(run, "test-ckpt", with_train_state=True)
+    assert torch.equal(state["w"], old["w"]) and int(ts["iteration"]) == 100
+    assert sorted(p.name for p in run.iterdir()) == ["bundle.json", "model.safetensors", "train_state.pt"]
+    save_bundle(run, "test-ckpt", {"w": torch.ones(4)}, {"lr": 2}, _prov(), train_state={"iteration": torch.tensor(300)})
+    meta, state, ts = load_bundle(run, "test-ckpt", with_train_state=True)
+    assert torch.equal(state["w"], torch.ones(4)) and int(ts["iteration"]) == 300 and meta["config"] == {"lr": 2}

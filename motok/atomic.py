@@ -3,7 +3,9 @@
 Every writer in motok (HDF5 artifacts, checkpoint bundles, videos, plots, BVH, caches) goes
 through :func:`atomic_path`: it writes a temporary sibling and renames it over the target only
 when the block succeeds, so a reader never sees a half-written file and a crash or Ctrl-C
-leaves none behind (``os.replace`` is atomic within one directory).
+leaves none behind (``os.replace`` is atomic within one directory). Files that belong together
+(a checkpoint) go through :func:`atomic_paths`, which renames them only when all are written.
+Results in JSON go through :func:`write_json` (strict JSON: ``null`` for a missing number).
 
 A writer killed outright (``kill -9``, the OOM killer, a power cut) cannot remove its temporary
 file. The name says whose it was, ``.STEM.HOST.PID.RANDOM.partSUFFIX``, so the next writer of

@@ -11,6 +11,10 @@
 #   mkdir -p runs/dry && ln -s ../bandai2.h5 runs/dry/ && R=runs/dry EXPERT_IT=40 PRIOR_IT=20 TASK_IT=10 \
 #     GEN_N=4 GEN_SECONDS=3 EVAL_N=8 BALLS_N=4 KIN_IT=20 T2M_RECIPE=recipes/eval/t2m_toy.yaml \
 #     scripts/physics_results.sh                 # every stage at toy size (~35 min on 2 cores)
+#   mkdir -p /tmp/frozen && git archive HEAD motok | tar -x -C /tmp/frozen && \
+#     MOTOK="env PYTHONPATH=/tmp/frozen .venv/bin/python -P -m motok.cli.main" scripts/physics_results.sh
+#                                              # the queue on a copy of the code, so that editing the
+#                                              # checkout cannot reach it (-P: not the checkout first)
 #
 # Stages, most important first (each waits for what it reads):
 #   data      runs/bandai2.h5, Bandai-Namco set 2 preprocessed

@@ -205,7 +205,37 @@ def main() -> None:
             rate, _ = run_env(hum, lib, n, "warp", args.seconds, device=args.device)
             print(f"{'warp raw':>8} {n:>4} {raw:>10,.0f} mj_step/s; env {rate * n * S:,.0f} mj_step/s "
                   f"({rate * n:,.0f} env-steps/s), ratio {rate * n * S / raw:.2f}", flush=True)
+    kinematics(hum, lib, args.repeats)
     print(f"load average after: {os.getloadavg()[0]:.1f}")
+
+
+def kinematics(hum, lib, repeats: int) -> None:
+    """The reference library's kinematics (``body_states``: body states and lowest points of every
+    frame) against MuJoCo's three kinematics calls alone in the same per-frame loop, the floor any
+    per-frame use of MjData has: their ratio is what the library adds to MuJoCo."""
+    from motok.sim.reference import body_states
+
+    q, v = lib.qpos, lib.qvel
+    m, d = hum.model, mujoco.MjData(hum.model)
+
+    def raw():
+        for t in range(len(q)):
+            d.qpos[:], d.qvel[:] = q[t], v[t]
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_comPos(m, d)
+            mujoco.mj_comVel(m, d)
+
+    def best(f):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            f()
+            times.append(time.perf_counter() - t0)
+        return len(q) / min(times)
+
+    r, b = best(raw), best(lambda: body_states(hum, q, v))
+    print(f"library kinematics, {len(q)} frames (best of {repeats}): body_states {b:,.0f} frames/s, MuJoCo's "
+          f"kinematics alone {r:,.0f} frames/s, ratio {b / r:.2f}")
 
 
 if __name__ == "__main__":

@@ -124,6 +124,45 @@ def test_numpy_kinematics_match_mujoco(hum, lib):
     assert np.abs(np.abs((mine.quat * ref["body_quat"]).sum(-1)) - 1).max() < 1e-9
 
 
+def test_body_states_equal_mujoco_frame_by_frame(hum, lib):
+    """The library's kinematics, computed on all frames at once, against MuJoCo asked one frame and
+    one body at a time: ``mj_objectVelocity`` for the velocity at each body's origin, and every geom's
+    lowest point (sphere: centre - r; capsule: the lower end of its axis - r; box: its lowest corner)."""
+    import itertools
+
+    import mujoco
+
+    m = hum.model
+    d = mujoco.MjData(m)
+    q, v = lib.qpos[::211].copy(), lib.qvel[::211].copy()
+    got = body_states(hum, q, v)
+    corners = np.array(list(itertools.product((-1, 1), repeat=3)), dtype=np.float64)
+    res = np.zeros(6)
+    for t in range(len(q)):
+        d.qpos[:], d.qvel[:] = q[t], v[t]
+        mujoco.mj_forward(m, d)
+        for j, b in enumerate(hum.body_ids):
+            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, int(b), res, 0)  # body origin, world axes
+            np.testing.assert_allclose(got["body_angvel"][t, j], res[:3], atol=1e-10)
+            np.testing.assert_allclose(got["body_vel"][t, j], res[3:], atol=1e-10)
+        np.testing.assert_allclose(got["body_pos"][t], d.xpos[hum.body_ids], atol=0)
+        low = np.inf
+        for g in np.flatnonzero(m.geom_bodyid != 0):
+            c, R, size = d.geom_xpos[g], d.geom_xmat[g].reshape(3, 3), m.geom_size[g]
+            if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_SPHERE:
+                z = c[2] - size[0]
+            elif m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE:
+                z = min(c[2] + R[2, 2] * size[1], c[2] - R[2, 2] * size[1]) - size[0]
+            elif m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+                z = (c[2] + (corners * size) @ R[2]).min()
+            else:
+                z = c[2]
+            low = min(low, z)
+        assert got["lowest"][t] == pytest.approx(low, abs=1e-12)
+    empty = body_states(hum, q[:0], v[:0])
+    assert empty["body_pos"].shape == (0, len(hum.body_ids), 3) and empty["lowest"].shape == (0,)
+
+
 # ----------------------------------------------------------------------------- environment
 
 def test_batch_stepper_is_plain_mujoco(hum, lib):

@@ -141,10 +141,38 @@ def t2p(R: Path) -> str:
 PROGRESS_KEYS = ("eval_success", "eval_reached_share", "eval_approach_share", "eval_mpjpe_mm")
 
 
+def target(run: Path) -> int | None:
+    """The iteration a training stops at: ``--until N`` of the command that last wrote its bundle,
+    else its config's ``iterations`` (None without a bundle)."""
+    meta = load(run / "bundle.json")
+    if not meta:
+        return None
+    words = str(meta.get("provenance", {}).get("command", "")).split()
+    if "--until" in words[:-1]:
+        return int(words[words.index("--until") + 1])
+    it = meta.get("config", {}).get("iterations")
+    return int(it) if it else None
+
+
+def eta(last: dict, recent: list[dict], goal: int | None) -> str:
+    """``it / goal``, and the wall time left at the pace of ``recent`` records, for a status line."""
+    it = last.get("iteration")
+    if goal is None or it is None:
+        return str(it or "")
+    if it >= goal:
+        return f"{it} / {goal} (done)"
+    first = recent[0]
+    if last.get("wall_s") is None or first.get("wall_s") is None or it <= first.get("iteration", it):
+        return f"{it} / {goal}"
+    per_it = (last["wall_s"] - first["wall_s"]) / (it - first["iteration"])
+    return f"{it} / {goal} ({(goal - it) * per_it / 3600:.1f} h left)"
+
+
 def status(R: Path) -> str:
-    """One line per run folder: iteration, samples, logged wall time, recent samples/s, the latest
-    evaluation logged while training, and the evaluation files already written; then the last line
-    of the queue's log (what runs, or why it stopped)."""
+    """One line per run folder: iteration of its goal and the time left at its recent pace, samples,
+    logged wall time, recent samples/s, the latest evaluation logged while training, and the
+    evaluation files already written; then the last line of the queue's log (what runs, or why it
+    stopped)."""
     rows = []
     for run in sorted(p for p in R.glob("**/metrics.jsonl") if "logs" not in p.parts):
         m = metrics(run.parent)
@@ -156,7 +184,8 @@ def status(R: Path) -> str:
         seen = ", ".join(f"{k.removeprefix('eval_')} {v:.3g} (it {next(r['iteration'] for r in reversed(m) if k in r)})"
                          for k, v in evals.items())
         files = ", ".join(sorted(p.name for p in run.parent.glob("*.json") if p.name != "bundle.json"))
-        rows.append([str(run.parent.relative_to(R)), last.get("iteration", ""), f"{last.get('samples', 0) / 1e6:.1f} M",
+        rows.append([str(run.parent.relative_to(R)), eta(last, m[-50:], target(run.parent)),
+                     f"{last.get('samples', 0) / 1e6:.1f} M",
                      f"{last.get('wall_s', 0) / 3600:.2f} h", f"{statistics.median(rate):,.0f}" if rate else "",
                      seen, files])
     out = [table(["run", "iteration", "samples", "wall", "samples/s (last 50)", "latest evaluation", "evaluated"],

@@ -159,3 +159,14 @@ def test_the_status_says_where_each_run_stands(tmp_path):
                          text=True, timeout=60).stdout
     assert "| expert_set2 | 3 | 0.0 M | 0.00 h | 4,002 | success 0.5 (it 2), mpjpe_mm 50 (it 2) | eval_val.json |" in out
     assert out.strip().endswith("queue: [14:00:01] expert_set2: motok control ...")
+    # with a bundle: the goal from the command's --until (else the config), and the time left at the pace
+    (expert / "bundle.json").write_text(json.dumps({"provenance": {"command": "motok control expert train --until 1003"},
+                                                    "config": {"iterations": 40000}}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs), "--status"], capture_output=True,
+                         text=True, timeout=60).stdout
+    assert "| expert_set2 | 3 / 1003 (1.0 h left) |" in out  # 1,000 iterations at 3.6 s each
+    (expert / "bundle.json").write_text(json.dumps({"provenance": {"command": "motok control distill"},
+                                                    "config": {"iterations": 3}}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs), "--status"], capture_output=True,
+                         text=True, timeout=60).stdout
+    assert "| expert_set2 | 3 / 3 (done) |" in out

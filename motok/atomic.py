@@ -89,16 +89,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     ``mkstemp``) create files readable by their owner only, which would make a shared
     checkpoint unreadable to its recipients.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temp_files(path)
-    tmp = path.with_name(temp_name(path))
-    try:
+    with atomic_paths(path) as (tmp,):
         yield tmp
-        os.chmod(tmp, 0o666 & ~_UMASK)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
@@ -108,7 +100,7 @@ def atomic_paths(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     block has written them all rename them into place, one right after the other in the order
     given. A crash or kill while writing (seconds, for a large training state) leaves the old set
     whole; only one between two renames (microseconds) could mix old and new, so the file that
-    readers check the others against goes last."""
+    readers check the others against goes last. Names and modes as :func:`atomic_path`'s."""
     paths = [Path(p) for p in paths]
     tmps = []
     try:

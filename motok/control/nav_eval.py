@@ -97,7 +97,7 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
         if len(ended):
             done[ended] += 1
             obs, goal = mdp.reset(ended)
-        new = info["target_ends"] | term | trunc  # a new target (or episode) from the next step on
+        new = info["target_ends"]  # a new target (or a new episode) from the next step on
         if new.any():
             start[new] = to_target()[new]
             closest[new] = start[new]

@@ -19,8 +19,9 @@
 # Stages, most important first (each waits for what it reads):
 #   data      runs/bandai2.h5, Bandai-Namco set 2 preprocessed
 #   expert    the whole-dataset expert (issue 14), to EXPERT_IT iterations, then its val/test evaluations
-#   priors    hybrid, continuous, discrete+, discrete, hybrid-vq distilled from it, PRIOR_IT iterations each (issue 15)
-#   prioreval imitation on the train and test clips for every prior (Fig. 4), Table 1 (generation + motion matching)
+#   priors    hybrid, continuous, discrete+, discrete, hybrid-vq distilled from it, PRIOR_IT iterations each (issue 15),
+#             each evaluated at once: imitation on the train and test clips (Fig. 4), its Table 1 generations
+#   prioreval Table 1 (motion matching of every prior's generations)
 #   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1), TASK_IT iterations each (issue 16)
 #   tasks     in-betweening and head tracking over hybrid and continuous; hybrid with 1, 2, 4 codebooks on navigation (Fig. 13)
 #   taskeval  every task run evaluated; the thrown balls on the navigation runs
@@ -36,8 +37,8 @@
 # recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/results.md). Both
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
-# Time on 2 cores: expert 3.0-3.6 h (measured on two machines), priors 2.3 h (28 min each, measured
-# for hybrid), prior evaluations ~0.6 h, tasks ~4.6 h, their evaluations 0.5 h, text to physics 2.5 h
+# Time on 2 cores: expert 3.0-4.1 h (measured on three machines), priors 2.3 h (28 min each, measured
+# for hybrid) and their evaluations ~0.6 h (each prior's right after it), tasks ~4.6 h, their evaluations 0.5 h, text to physics 2.5 h
 # (estimates): about 14 h, in pieces. `scripts/physics_tables.py --status` shows where it stands.
 # Measured durations on 2 quiet cores are in docs/results.md beside each number.
 set -euo pipefail
@@ -114,25 +115,39 @@ stage_priors() {
     for k in "${PRIORS[@]}"; do
         train "$R/prior_$k" "prior_$k" "${M[@]}" control distill --expert "$EXPERT" --prior "$k" \
             --recipe "recipes/control/prior_$k.yaml" --set iterations="$PRIOR_IT"
+        prior_evals "$k"  # at once: a session that ends mid-stage keeps every finished prior's numbers
     done
 }
 
+# table1_rows KIND: the Table 1 rows of one prior, as "codebooks tag" (codebooks "all": the whole prior).
+table1_rows() {
+    case $1 in
+        discrete+) for m in 1 2 3; do echo "$m $1-m$m"; done ;;
+        hybrid) for m in 1 2 3 4 5 6 7 8; do echo "$m $1-m$m"; done ;;
+        *) echo "all $1" ;;
+    esac
+}
+
+# prior_evals KIND: imitation on the train and test clips (Fig. 4) and the Table 1 generations of one prior.
+prior_evals() {
+    local k=$1 p=$R/prior_$1 m tag
+    once "$p/eval.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p"
+    once "$p/eval_test.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p" -d "$DATA" --split test
+    while read -r m tag; do
+        local cb=()
+        [ "$m" != all ] && cb=(--codebooks "$m")
+        once "$R/table1/$tag.h5" generate "${M[@]}" control generate --prior "$p" "${cb[@]}" \
+            --seconds "$GEN_SECONDS" -n "$GEN_N" --seed 0 -o "$R/table1/$tag.h5" < /dev/null
+    done < <(table1_rows "$k")
+}
+
+# Table 1 over every prior's generations (the evaluations above, for priors distilled before they ran in `priors`).
 stage_prioreval() {
-    local gens=()
+    local gens=() k m tag
     for k in "${PRIORS[@]}"; do
-        local p=$R/prior_$k
-        [ -f "$p/bundle.json" ] || continue
-        once "$p/eval.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p"
-        once "$p/eval_test.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p" -d "$DATA" --split test
-        local ms=(all)
-        case $k in discrete+) ms=(1 2 3) ;; hybrid) ms=(1 2 3 4 5 6 7 8) ;; esac
-        for m in "${ms[@]}"; do
-            local cb=() tag=$k
-            [ "$m" != all ] && cb=(--codebooks "$m") && tag=$k-m$m
-            once "$R/table1/$tag.h5" generate "${M[@]}" control generate --prior "$p" "${cb[@]}" \
-                --seconds "$GEN_SECONDS" -n "$GEN_N" --seed 0 -o "$R/table1/$tag.h5"
-            gens+=(--motions "$R/table1/$tag.h5")
-        done
+        [ -f "$R/prior_$k/bundle.json" ] || continue
+        prior_evals "$k"
+        while read -r m tag; do gens+=(--motions "$R/table1/$tag.h5"); done < <(table1_rows "$k")
     done
     [ ${#gens[@]} -gt 0 ] && once "$R/table1/table1.json" motion_matching "${M[@]}" eval motion-matching \
         -d "$DATA" --split train "${gens[@]}" -o "$R/table1/table1.json" -o "$R/table1/table1.md"

@@ -78,6 +78,31 @@ def test_trainings_resume_only_from_a_checkpoint(tmp_path):
         assert "iterations=1500" in a
 
 
+def test_each_prior_is_evaluated_before_the_next_is_distilled(tmp_path):
+    """A session that ends in the `priors` stage keeps the numbers of every prior finished; Table 1
+    (motion matching) waits for `prioreval` and reads every generation, in the queue's order."""
+    cmds = queue(tmp_path, "priors", checkpoints=["prior_hybrid"])
+    steps = [(a[1], Path(a[a.index("--prior") + 1]).name if "--prior" in a else None) for a in cmds]
+    first = [s for s in steps[:steps.index(("distill", "continuous"))]]
+    assert first[0] == ("distill", "hybrid")
+    assert first[1:] == [("eval", "prior_hybrid")] * 2 + [("generate", "prior_hybrid")] * 8
+    assert not any(a[:2] == ["eval", "motion-matching"] for a in cmds)
+    gens = [f"table1/{t}.h5" for t in ("hybrid-m1", "hybrid-m2", "continuous", "discrete+-m1", "discrete+-m2",
+                                       "discrete+-m3")]
+    done = ["prior_hybrid/eval.json", "prior_hybrid/eval_test.json", "prior_continuous/eval.json",
+            "prior_continuous/eval_test.json", "prior_discrete+/eval.json", "prior_discrete+/eval_test.json"]
+    (tmp_path / "again").mkdir()
+    cmds = queue(tmp_path / "again", "prioreval", checkpoints=["prior_hybrid", "prior_continuous", "prior_discrete+"],
+                 outputs=gens + done)
+    made = [out_of(a) for a in cmds if a[1] == "generate"]
+    assert made == [f"hybrid-m{m}.h5" for m in range(3, 9)]  # only the missing rows
+    mm = [a for a in cmds if a[:2] == ["eval", "motion-matching"]]
+    assert len(mm) == 1 and cmds[-1] == mm[0]
+    rows = [Path(mm[0][i + 1]).name for i, x in enumerate(mm[0]) if x == "--motions"]
+    assert rows == [f"hybrid-m{m}.h5" for m in range(1, 9)] + ["continuous.h5"] + [f"discrete+-m{m}.h5"
+                                                                                      for m in (1, 2, 3)]
+
+
 def test_outputs_that_exist_are_not_made_again(tmp_path):
     cmds = queue(tmp_path, "data", "expert", outputs=["bandai2.h5", "expert_set2/eval_val.json"])
     assert [a[:3] for a in cmds] == [["control", "expert", "train"], ["control", "expert", "eval"]]

@@ -38,8 +38,8 @@
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
 # Time on 2 cores: expert 3.0-4.1 h (measured on three machines), priors 2.3 h (28 min each, measured
-# for hybrid) and their evaluations ~0.6 h (each prior's right after it), tasks ~4.6 h, their evaluations 0.5 h, text to physics 2.5 h
-# (estimates): about 14 h, in pieces. `scripts/physics_tables.py --status` shows where it stands.
+# for hybrid) and their evaluations ~0.6 h (each prior's right after it), tasks ~4.6 h, their
+# evaluations 0.5 h, text to physics 2.5 h (estimates): about 14 h, in pieces. `scripts/physics_tables.py --status` shows where it stands.
 # Measured durations on 2 quiet cores are in docs/results.md beside each number.
 set -euo pipefail
 cd "$(dirname "$0")/.."

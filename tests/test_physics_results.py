@@ -83,7 +83,7 @@ def test_each_prior_is_evaluated_before_the_next_is_distilled(tmp_path):
     (motion matching) waits for `prioreval` and reads every generation, in the queue's order."""
     cmds = queue(tmp_path, "priors", checkpoints=["prior_hybrid"])
     steps = [(a[1], Path(a[a.index("--prior") + 1]).name if "--prior" in a else None) for a in cmds]
-    first = [s for s in steps[:steps.index(("distill", "continuous"))]]
+    first = steps[:steps.index(("distill", "continuous"))]
     assert first[0] == ("distill", "hybrid")
     assert first[1:] == [("eval", "prior_hybrid")] * 2 + [("generate", "prior_hybrid")] * 8
     assert not any(a[:2] == ["eval", "motion-matching"] for a in cmds)

@@ -2,7 +2,8 @@
 
 Every motok HDF5 file carries, as root attributes, its ``kind`` (``motion-dataset``,
 ``motion``, ...), a ``schema_version`` and a JSON ``provenance`` record (motok version,
-command line, resolved config, SHA-256 of every input, creation time, what was skipped).
+command line, resolved config, SHA-256 of every input, creation time, what was skipped, and the
+machine: CPU, dispatched SIMD kernels, package versions).
 Files are written under a temporary name in the target directory and renamed into place
 only when the writer finished without error, so a crash never leaves a half file.
 """
@@ -25,6 +26,7 @@ import numpy as np
 from motok import __version__
 from motok.atomic import atomic_path
 from motok.errors import MotokError
+from motok.machine import machine_record
 
 # kind -> schema versions this build reads. The first entry is what it writes.
 KINDS: dict[str, tuple[int, ...]] = {
@@ -47,13 +49,16 @@ class Provenance:
     skipped: list[dict[str, str]] = field(default_factory=list)
     motok_version: str = __version__
     created: str = field(default_factory=lambda: _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    machine: dict[str, Any] = field(default_factory=machine_record)  # CPU, kernels, versions (motok.machine)
 
     def to_json(self) -> str:
         return json.dumps(self.__dict__, sort_keys=True, default=_json_default)
 
     @classmethod
     def from_json(cls, text: str) -> "Provenance":
-        return cls(**json.loads(text))
+        d = json.loads(text)
+        d.setdefault("machine", {})  # a record from before machines were recorded is not this machine's
+        return cls(**d)
 
 
 def _json_default(o):

@@ -39,6 +39,8 @@ from safetensors.torch import load_file, save_file
 from motok.artifacts import Provenance
 from motok.atomic import atomic_paths, strict_json
 from motok.errors import MissingFileError, MotokError
+from motok.machine import arithmetic_differences
+from motok.progress import info
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
 
@@ -178,6 +180,10 @@ def load_bundle(run: str | Path, kind: str | None = None, with_train_state: bool
         except Exception as e:  # pickle, zip and torch errors alike mean a damaged file here
             raise CheckpointError(f"{p}: unreadable training state, the file is truncated or corrupted "
                                   f"({type(e).__name__}: {e})") from None
+        changed = arithmetic_differences((meta.get("provenance") or {}).get("machine"))
+        if changed:  # resuming is still right; only repeating the run to the digit is off
+            info(f"[bold yellow]warning:[/] {run}: resuming on other arithmetic than the checkpoint was made "
+                 f"with, so the run will not repeat an uninterrupted one to the digit ({'; '.join(changed)})")
     return meta, state, train_state
 
 

@@ -146,11 +146,25 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _machine_line(m: dict) -> str:
+    pk = m.get("packages", {})
+    parts = [f"{m.get('cpu')}, {m.get('cores')} cores"]
+    if "torch" in pk:
+        parts.append(f"torch {pk['torch']}" + (f" ({m['torch_cpu_capability']})" if m.get("torch_cpu_capability") else ""))
+    if "numpy" in pk:
+        parts.append(f"numpy {pk['numpy']} ({'+'.join(m.get('numpy_simd') or ['baseline'])})")
+    parts += [f"{p} {pk[p]}" for p in pk if p not in ("torch", "numpy")]
+    parts += [f"{k}={v}" for k, v in (m.get("env") or {}).items()]
+    return ", ".join(parts)
+
+
 def _provenance(d: dict, console) -> None:
     prov = d["provenance"]
     if prov:
         console.print(f"made by motok {prov.get('motok_version')} on {prov.get('created')}: {prov.get('command')}",
                       highlight=False)
+    if prov.get("machine"):
+        console.print(f"  on {_machine_line(prov['machine'])}", highlight=False)
     for k, v in prov.get("inputs", {}).items():
         console.print(f"  input {k}  sha256 {str(v)[:16]}…", highlight=False)
     if prov.get("skipped"):

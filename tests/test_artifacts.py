@@ -143,3 +143,52 @@ def test_a_checkpoint_interrupted_while_saving_leaves_the_last_one_whole(tmp_pat
     save_bundle(run, "test-ckpt", {"w": torch.ones(4)}, {"lr": 2}, _prov(), train_state={"iteration": torch.tensor(300)})
     meta, state, ts = load_bundle(run, "test-ckpt", with_train_state=True)
     assert torch.equal(state["w"], torch.ones(4)) and int(ts["iteration"]) == 300 and meta["config"] == {"lr": 2}
+
+
+def test_provenance_records_the_machine_and_its_kernels(small_dataset):
+    """A real artifact says which CPU, SIMD kernels and package versions made it (a run repeats to
+    the digit only on the same ones; docs/results.md); a record from before machines were recorded
+    is read as unknown, never as this machine's."""
+    import json
+    from importlib import metadata
+
+    from motok.machine import machine_record
+
+    with open_artifact(small_dataset, "motion-dataset") as f:
+        m = provenance_of(f).machine
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__
+    except ImportError:
+        from numpy.core._multiarray_umath import __cpu_dispatch__
+    assert m["cpu"] and m["cores"] >= 1 and set(m["numpy_simd"]) <= set(__cpu_dispatch__)
+    assert m["packages"]["numpy"] == np.__version__ and m["packages"]["h5py"] == metadata.version("h5py")
+    assert m["packages"]["torch"] == metadata.version("torch") and m["torch_cpu_capability"]
+    now = machine_record()  # the dataset was made in this process (its env may have had other test settings)
+    assert {k: v for k, v in m.items() if k != "env"} == {k: v for k, v in now.items() if k != "env"}
+    old = json.loads(_prov().to_json())
+    del old["machine"]
+    assert Provenance.from_json(json.dumps(old)).machine == {}
+
+
+def test_capped_kernels_are_recorded_and_named_as_other_arithmetic():
+    """numpy with its dispatched SIMD targets switched off (as NPY_DISABLE_CPU_FEATURES does on an
+    AVX-512 machine to repeat an AVX2 run) records other kernels and the variable, and the record's
+    comparison names both; the same process compared with itself names nothing."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from motok.machine import arithmetic_differences, machine_record
+
+    here = machine_record()
+    assert arithmetic_differences(here) == [] and arithmetic_differences({}) == []
+    if not here["numpy_simd"]:
+        pytest.skip("numpy dispatches no SIMD target above its baseline on this CPU")
+    env = dict(os.environ, NPY_DISABLE_CPU_FEATURES=" ".join(here["numpy_simd"]))
+    out = subprocess.run([sys.executable, "-c", "import json, torch; from motok.machine import machine_record; "
+                          "print(json.dumps(machine_record()))"], env=env, capture_output=True, text=True, check=True)
+    capped = json.loads(out.stdout)
+    assert capped["numpy_simd"] == [] and capped["env"]["NPY_DISABLE_CPU_FEATURES"] == env["NPY_DISABLE_CPU_FEATURES"]
+    changed = arithmetic_differences(here, capped)
+    assert [c.split(":")[0] for c in changed] == ["numpy_simd", "env"]

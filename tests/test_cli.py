@@ -29,6 +29,9 @@ def test_info_json(small_dataset):
     assert d["kind"] == "motion-dataset" and d["schema_version"] == 1 and d["clips"] == 24
     assert d["datasets"]["frames/features"]["shape"][1] == 251
     assert sum(d["splits"].values()) == 24 and d["captions"]
+    assert d["provenance"]["machine"]["packages"]["numpy"] == np.__version__
+    r = runner.invoke(app, ["info", str(small_dataset)])  # the plain print names the machine in one line
+    assert r.exit_code == 0 and f"numpy {np.__version__} (" in r.output, r.output
 
 
 def test_render_and_export(small_dataset, tmp_path):

@@ -434,3 +434,25 @@ def test_cli_errors_are_one_line(small_dataset, tmp_path):
     r = runner.invoke(app, ["tokenize", "train", "--data", str(small_dataset), "-o", str(tmp_path / "r"),
                             "--set", "quantizer.kind=nope"])
     assert r.exit_code == 2 and "kind" in r.output
+
+
+def test_resuming_on_other_kernels_says_so(small_dataset, tmp_path, capsys):
+    """Resuming stays correct on another machine, but it cannot repeat the uninterrupted run to the
+    digit: the training says which of the checkpoint's recorded kernels or versions changed, and
+    says nothing when they did not."""
+    import json
+
+    cfg = tiny("iterations=4")
+    train(cfg, small_dataset, tmp_path / "run", stop_at=2)
+    capsys.readouterr()
+    train(resolve_config(None, ["iterations=6"], tmp_path / "run", resume=True), small_dataset, tmp_path / "run",
+          resume=True, stop_at=4)
+    assert "other arithmetic" not in capsys.readouterr().err
+    meta = json.loads((tmp_path / "run" / "bundle.json").read_text())
+    meta["provenance"]["machine"]["numpy_simd"] = ["SOME_OTHER_TARGET"]
+    (tmp_path / "run" / "bundle.json").write_text(json.dumps(meta))
+    train(resolve_config(None, ["iterations=6"], tmp_path / "run", resume=True), small_dataset, tmp_path / "run",
+          resume=True)
+    err = capsys.readouterr().err
+    assert "other arithmetic" in err and "SOME_OTHER_TARGET" in err
+    assert load_bundle(tmp_path / "run", with_train_state=True)[2]["iteration"] == 6

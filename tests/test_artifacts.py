@@ -171,24 +171,29 @@ def test_provenance_records_the_machine_and_its_kernels(small_dataset):
 
 
 def test_capped_kernels_are_recorded_and_named_as_other_arithmetic():
-    """numpy with its dispatched SIMD targets switched off (as NPY_DISABLE_CPU_FEATURES does on an
-    AVX-512 machine to repeat an AVX2 run) records other kernels and the variable, and the record's
-    comparison names both; the same process compared with itself names nothing."""
+    """A process with its kernels capped (torch to its default level, numpy's dispatched SIMD targets
+    switched off, as the variables that repeat an AVX2 run on an AVX-512 machine do) records other
+    kernels and the variables, and the record's comparison names exactly what changed; the same
+    process compared with itself names nothing."""
     import json
     import os
     import subprocess
     import sys
 
+    import torch  # noqa: F401  (imported, so that the record holds torch's kernel level)
+
     from motok.machine import arithmetic_differences, machine_record
 
     here = machine_record()
     assert arithmetic_differences(here) == [] and arithmetic_differences({}) == []
-    if not here["numpy_simd"]:
-        pytest.skip("numpy dispatches no SIMD target above its baseline on this CPU")
-    env = dict(os.environ, NPY_DISABLE_CPU_FEATURES=" ".join(here["numpy_simd"]))
+    caps = {"ATEN_CPU_CAPABILITY": "default", "NPY_DISABLE_CPU_FEATURES": " ".join(here["numpy_simd"])}
     out = subprocess.run([sys.executable, "-c", "import json, torch; from motok.machine import machine_record; "
-                          "print(json.dumps(machine_record()))"], env=env, capture_output=True, text=True, check=True)
+                          "print(json.dumps(machine_record()))"], env=dict(os.environ, **caps),
+                         capture_output=True, text=True, check=True)
     capped = json.loads(out.stdout)
-    assert capped["numpy_simd"] == [] and capped["env"]["NPY_DISABLE_CPU_FEATURES"] == env["NPY_DISABLE_CPU_FEATURES"]
-    changed = arithmetic_differences(here, capped)
-    assert [c.split(":")[0] for c in changed] == ["numpy_simd", "env"]
+    assert capped["torch_cpu_capability"] == "DEFAULT" and capped["numpy_simd"] == []
+    assert {k: capped["env"][k] for k in caps} == caps
+    # env always differs (the caps are new); the kernels wherever this machine dispatched more than the caps allow
+    expected = [k for k, moved in (("torch_cpu_capability", here["torch_cpu_capability"] != "DEFAULT"),
+                                   ("numpy_simd", bool(here["numpy_simd"])), ("env", True)) if moved]
+    assert [c.split(":")[0] for c in arithmetic_differences(here, capped)] == expected

@@ -67,17 +67,41 @@ def priors(R: Path) -> str:
          "code usage (last 20 it.)"], rows)
 
 
+def falls(gen: Path) -> str:
+    """'fell / samples' of one `control generate` output, from the labels each sample carries."""
+    if not gen.exists():
+        return ""
+    import h5py  # only here: the other tables need nothing but json
+
+    with h5py.File(gen, "r") as f:
+        labels = [json.loads(x) for x in f["clips"]["labels"][:]]
+    return f"{sum(x.get('fell_at_s') is not None for x in labels)} / {len(labels)}"
+
+
+def curves(R: Path) -> str:
+    """Each prior's eval-subset success (played to the end) at every evaluation of its run."""
+    runs = {k: [r for r in metrics(R / f"prior_{k}") if "eval_success" in r] for k in PRIORS}
+    runs = {k: v for k, v in runs.items() if v}
+    if not runs:
+        return ""
+    its = sorted({r["iteration"] for v in runs.values() for r in v})
+    rows = [[k] + [pct({r["iteration"]: r["eval_success"] for r in v}.get(i)) for i in its] for k, v in runs.items()]
+    return "Eval subset during distillation, played to the end, at iteration:\n\n" + table(
+        ["prior"] + [f"{i:,}" for i in its], rows)
+
+
 def table1(R: Path) -> str:
     rep = load(R / "table1" / "table1.json")
     if rep is None:
         return ""
     rows = [[Path(r["motion"]).stem, r["transitions"], f"{r['distance_mean']:.3f}", pct(r["filtered_rate"]),
-             pct(r["coverage"]), pct(r["coverage_within_threshold"]), f"{r['jitter_m_s3']:.1f}"] for r in rep["rows"]]
+             pct(r["coverage"]), pct(r["coverage_within_threshold"]), f"{r['jitter_m_s3']:.1f}",
+             falls(R / "table1" / Path(r["motion"]).name)] for r in rep["rows"]]
     d = rep["dataset"]
-    rows.append(["dataset", d["transitions"], "", "", "", "", f"{d['jitter_m_s3']:.1f}"])
+    rows.append(["dataset", d["transitions"], "", "", "", "", f"{d['jitter_m_s3']:.1f}", ""])
     return (f"Table 1 (threshold {rep['threshold']['value']:.3f}: {rep['threshold']['definition']}):\n\n"
-            + table(["motion", "transitions", "distance", "filtered", "coverage", "coverage <= thr", "jitter m/s^3"],
-                    rows))
+            + table(["motion", "transitions", "distance", "filtered", "coverage", "coverage <= thr", "jitter m/s^3",
+                     "fell (head < 0.5 m)"], rows))
 
 
 def tasks(R: Path) -> str:
@@ -205,7 +229,7 @@ def main():
     if args.status:
         print(status(R))
         return
-    for part in (priors(R), table1(R), tasks(R), t2p(R)):
+    for part in (priors(R), curves(R), table1(R), tasks(R), t2p(R)):
         if part:
             print(part + "\n")
 

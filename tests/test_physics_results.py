@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
 from typer.testing import CliRunner
 
 from motok.cli.main import app
@@ -145,6 +146,7 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
     prior.mkdir()
     rows = [{"iteration": i, "samples": 4096 * i, "wall_s": 1.1 * i, "samples_per_s": 3800.0, "code_usage": 0.9}
             for i in (1, 2)]
+    rows[1]["eval_success"] = 0.25
     (prior / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows))
     overall = {"success_rate": 0.635, "success_rate_any_body": 0.604, "mpjpe_mm": 52.6, "g_mpjpe_mm": 114.0,
                "root_vel_err_mm": 8.16, "root_acc_err_mm": 5.92}
@@ -155,6 +157,9 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
         "dataset": {"transitions": 10, "jitter_m_s3": 55.7},
         "rows": [{"motion": "runs/table1/hybrid-m1.h5", "transitions": 5, "distance_mean": 1.25, "filtered_rate": 0.1,
                   "coverage": 0.2, "coverage_within_threshold": 0.15, "jitter_m_s3": 60.0}]}))
+    with h5py.File(runs / "table1" / "hybrid-m1.h5", "w") as f:  # the labels `control generate` writes
+        f.create_group("clips")["labels"] = [json.dumps({"sample": i, "fell_at_s": t}) for i, t in
+                                             enumerate((None, 4.5, None))]
     nav = runs / "nav_hybrid"  # no target reached: the time to reach is null in the (strict) JSON
     nav.mkdir()
     (nav / "metrics.jsonl").write_text(json.dumps({"iteration": 3, "samples": 6_144_000, "wall_s": 1500.0}))
@@ -165,7 +170,8 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
                          timeout=60).stdout
     assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |  |" in out, out
     assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
-    assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 |" in out and "threshold 3.668" in out
+    assert "| prior | 2 |" in out and "| hybrid | 25.0 % |" in out
+    assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 | 1 / 3 |" in out and "threshold 3.668" in out
 
 
 def test_the_status_says_where_each_run_stands(tmp_path):

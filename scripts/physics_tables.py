@@ -107,8 +107,8 @@ def table1(R: Path) -> str:
 
 def orderings(R: Path) -> str:
     """The paper's orderings that issue 15 asks about, each read from the outputs and said to hold or
-    not: the row of docs/results.md's discussion, not its verdict on noise (a few points either way
-    on 427 test clips is within it)."""
+    not by a strict comparison; whether a difference is beyond noise (a few points on 427 test clips
+    are not) is for the discussion in docs/results.md."""
     rep = load(R / "table1" / "table1.json")
     t1 = {Path(r["motion"]).stem: r for r in rep["rows"]} if rep else {}
     test = {k: (load(R / f"prior_{k}" / "eval_test.json") or {}).get("overall", {}) for k in PRIORS}
@@ -133,7 +133,7 @@ def orderings(R: Path) -> str:
     claim("hybrid(1) coverage above discrete+(1) (Table 1)", t1row("hybrid-m1"), t1row("discrete+-m1"),
           "coverage", True, pct)
     for a, b, what in (("discrete+", "discrete", "RVQ above single VQ"), ("hybrid", "hybrid-vq", "hybrid-vq below hybrid"),
-                       ("hybrid", "continuous", "hybrid at least continuous")):
+                       ("hybrid", "continuous", "hybrid vs continuous (Fig. 4)")):
         claim(f"{what}: {a} above {b}, test clips played to the end", im(a), im(b), "success_rate", True, pct)
         claim(f"{what}: {a} below {b}, test MPJPE", im(a), im(b), "mpjpe_mm", False, "{:.1f} mm".format)
     if not rows:

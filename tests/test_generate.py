@@ -80,6 +80,22 @@ def test_the_number_of_codebooks_is_checked():
         check_codebooks(hybrid, 5)
     with pytest.raises(UserError, match="no codebooks"):
         check_codebooks(LatentPrior(small("continuous"), obs_dim=10, goal_dim=6, action_dim=4), 1)
+    assert check_codebooks(hybrid, 0) == 0  # the prior alone: only where there is a prior network
+    with pytest.raises(UserError, match="must be in 1..") as e:
+        check_codebooks(LatentPrior(small("discrete+"), obs_dim=10, goal_dim=6, action_dim=4), 0)
+    assert "z_p alone" not in str(e.value)
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "hybrid-vq"])
+def test_zero_codebooks_is_the_prior_alone(kind):
+    torch.manual_seed(0)
+    model = LatentPrior(small(kind), obs_dim=10, goal_dim=6, action_dim=4).eval()
+    s = torch.randn(64, 10)
+    z, idx = sample_latent(model, s, 0, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        z_p = model.prior_latent(s)[0]
+    assert idx.shape == (64, 0) and torch.equal(z, z_p)
+    assert not torch.allclose(z, sample_latent(model, s, 1, torch.Generator().manual_seed(0))[0])
 
 
 # ---------------------------------------------------------------------- the motion

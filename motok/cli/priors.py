@@ -110,7 +110,8 @@ def generate_cmd(
     prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`)."),
     out: Path = output_option(help="The generated motion (.h5, a motion artifact).", suffixes=H5),
     codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Sample codes from the first M codebooks "
-                                            "(default: all; not for the continuous prior)."),
+                                            "(default: all; 0: hybrid's prior z_p alone; not for the continuous "
+                                            "prior)."),
     seconds: float = typer.Option(30.0, "--seconds", help="Length of each sample in seconds (a fall ends it "
                                   "sooner)."),
     num: int = typer.Option(10, "-n", "--num-samples", help="Number of samples."),

@@ -9,7 +9,9 @@ the current-pose base (``q_hat = q + scale a``, as in distillation).
 * discrete, hybrid-vq: one code index, uniform over the codebook;
 * discrete+, hybrid: one index per codebook for the first M codebooks, each uniform and
   independent (``z_bar`` = the sum of the codes; hybrid: ``z_p(s)`` plus that sum);
-* continuous: ``z ~ N(mu_p(s), sigma_p(s)^2)``, the prior Gaussian.
+* continuous: ``z ~ N(mu_p(s), sigma_p(s)^2)``, the prior Gaussian;
+* hybrid and hybrid-vq with M = 0: ``z_bar = z_p(s)``, the prior alone (no margin), which tells
+  whether a sample's fall comes from the random margins or from the prior itself.
 
 A sample ends at the requested length, or when it falls (the head below ``fall_height``, 0.5 m)
 or the simulation diverges: it is not reset; the frames up to the last upright one are kept and
@@ -51,8 +53,11 @@ def check_codebooks(model: LatentPrior, codebooks: int | None) -> int:
         return 0
     if codebooks is None:
         return n
+    if codebooks == 0 and model.prior is not None:
+        return 0
     if not 1 <= codebooks <= n:
-        raise UserError(f"--codebooks must be in 1..{n} for this {model.kind} prior")
+        alone = " (or 0: the prior's z_p alone)" if model.prior is not None else ""
+        raise UserError(f"--codebooks must be in 1..{n}{alone} for this {model.kind} prior")
     return codebooks
 
 
@@ -61,10 +66,12 @@ def sample_latent(model: LatentPrior, s: torch.Tensor, m: int,
                   gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``(z_bar, indices)`` for normalised observations ``s`` ``(B, obs_dim)``: ``m`` code indices
     per row, uniform and independent (``indices`` ``(B, m)``), or for the continuous prior a draw
-    from the prior Gaussian (``indices`` None)."""
+    from the prior Gaussian (``indices`` None); ``m = 0`` with a prior network: ``z_p(s)``, no codes."""
     if model.quantizer is None:
         mu, log_std = model.prior_latent(s)
         return mu + torch.exp(log_std) * torch.randn(mu.shape, generator=gen), None
+    if m == 0:
+        return model.prior_latent(s)[0], torch.empty(len(s), 0, dtype=torch.long)
     idx = torch.randint(model.quantizer.codebook_size, (len(s), m), generator=gen)
     return model.codes_to_latent(s, idx, m), idx
 
@@ -133,7 +140,7 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
     rng, gen = np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     start_clips, start_frames = lib.sample(num_samples, rng, horizon=1)
     qpos, qvel = reference_state(lib, start_clips, start_frames)
-    tag = model.kind if m == 0 else f"{model.kind}-m{m}"
+    tag = model.kind if model.quantizer is None else f"{model.kind}-m{m}"
     names = [f"{tag}-{i:03d}" for i in range(num_samples)]
     written, per, video = [], {}, None
     with runner.torch_threads(cfg.torch_threads), make_progress("steps") as bar:
@@ -165,14 +172,16 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
         "control_hz": hz}, inputs={**hash_inputs([src]), "prior#weights": meta.get("model_sha256")})
     write_motion(out, "motion", prov, written, skeleton, offsets.astype(np.float32), fps, legacy)
     fell = [v["fell_at_s"] for v in per.values() if v["stopped"] == "fall"]
-    summary = {"output": str(out), "prior": str(prior_run), "kind": model.kind, "codebooks": m or None,
+    summary = {"output": str(out), "prior": str(prior_run), "kind": model.kind,
+               "codebooks": m if model.quantizer is not None else None,
                "samples": num_samples, "written": len(written), "seconds": seconds,
                "seconds_played_mean": float(np.mean([v["seconds"] for v in per.values()])),
                "fell": len(fell), "stopped_other": sum(v["stopped"] not in (None, "fall") for v in per.values()),
                "frames": int(sum(c.num_frames for c in written)), "fps": fps}
     if video is not None:
         from motok.sim.render import render_trajectory
-        how = f"uniform codes of {m} codebook{'s' * (m > 1)}" if m else "prior draws"
+        how = ("prior draws" if model.quantizer is None else "the prior's z_p alone" if m == 0
+               else f"uniform codes of {m} codebook{'s' * (m > 1)}")
         path, backend = render_trajectory(hum, video, render, hz, title=f"{names[0]}: {how}")
         summary["video"] = f"{path} ({backend})"
     return {**summary, "per_sample": per}

@@ -300,3 +300,26 @@ def test_several_runs_share_the_subplots(tmp_path):
     r = CliRunner().invoke(app, ["--quiet", "plot", str(runs[0]), str(runs[0] / "metrics.jsonl"), "-o",
                                  str(tmp_path / "same.png")])
     assert r.exit_code == 2 and "--label" in r.output
+
+
+def test_log_axis_only_for_the_named_keys(tmp_path):
+    """``logy`` puts the named subplots (an action loss falling over decades) on a log scale and
+    leaves the others linear; a name that is not plotted is an error, not a silent linear axis."""
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+    from motok.render.plot import _figure
+
+    recs = [{"samples": i, "action_loss": 10.0 ** -i, "eval_success": i / 10} for i in range(1, 6)]
+    fig = _figure(recs, ["action_loss", "eval_success"], "samples", logy=["action_loss"])
+    assert [ax.get_yscale() for ax in fig.axes[:2]] == ["log", "linear"]
+    with pytest.raises(ValueError, match="--log actoin_loss: not among the plotted keys"):
+        _figure(recs, ["action_loss"], "samples", logy=["actoin_loss"])
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in recs) + "\n")
+    r = CliRunner().invoke(app, ["--quiet", "plot", str(tmp_path / "run"), "--keys", "action_loss,eval_success",
+                                 "--log", "action_loss", "-o", str(tmp_path / "log.png")])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["--quiet", "plot", str(tmp_path / "run"), "--keys", "eval_success",
+                                 "--log", "action_loss", "-o", str(tmp_path / "bad.png")])
+    assert r.exit_code == 2 and "not among the plotted keys" in r.output

@@ -153,7 +153,7 @@ def export_bvh_cmd(
 @app.command(epilog=examples("motok plot runs/gpt", "motok plot runs/expert --keys success,mpjpe_mm --x samples "
                              "--x2 wall_s --smooth 0.9 -o expert.png",
                              "motok plot runs/prior_hybrid runs/prior_continuous --keys eval_success,action_loss "
-                             "--x samples -o priors.png"))
+                             "--x samples --log action_loss -o priors.png"))
 def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its metrics.jsonl; several are drawn "
                                                           "on the same subplots.", callback=existing),
          out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png; required for several runs).",
@@ -164,13 +164,17 @@ def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its met
          x: str = typer.Option("iteration", "--x", help="Field on the x axis, e.g. samples."),
          x2: Optional[str] = typer.Option(None, "--x2", help="Second x axis on top, e.g. wall_s."),
          smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve."),
+         log: Optional[str] = typer.Option(None, "--log", help="Comma-separated metrics drawn on a log y axis "
+                                           "(losses, errors)."),
          missing_ok: bool = typer.Option(False, "--missing-ok", help="Leave out, with a warning, --keys that no "
                                          "run has logged yet (at least one must be there)."),
          as_json: bool = JsonOut):
     """Plot training curves from metrics JSONL to PNG; several runs on the same subplots to compare them."""
     from motok.render.plot import plot_run
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
-    dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2, missing_ok=missing_ok)
+    logy = [k.strip() for k in log.split(",") if k.strip()] if log else False
+    dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2, missing_ok=missing_ok,
+              logy=logy)
     src = [str(m) for m in metrics]
     wrote({"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2},
           as_json)

@@ -129,6 +129,10 @@ def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, mis
     if unknown:
         raise UserError(f"{names}: no metric {', '.join(map(repr, unknown))} in the log; it has: "
                         f"{', '.join(available) or '(nothing numeric)'}")
+    if logy is not True and set(logy or ()) - set(keys):
+        # a typo here would silently draw a linear axis
+        raise UserError(f"{names}: --log {', '.join(sorted(set(logy) - set(keys)))}: not among the plotted keys "
+                        f"({', '.join(keys)})")
     for name, key in (("--x", x), ("--x2", x2)):
         # Without an iteration field the record number is the x axis (documented); any other
         # field must be there, or the plot would silently show something else.

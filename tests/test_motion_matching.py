@@ -14,8 +14,8 @@ from typer.testing import CliRunner
 
 from motok.artifacts import Provenance
 from motok.data.dataset import MotionFile, write_motion
-from motok.eval.motion_matching import (brute_force, derive_threshold, match_metrics, motion_matching, nearest,
-                                        states, transitions)
+from motok.eval.motion_matching import (brute_force, derive_threshold, equal_size_coverage, match_metrics,
+                                        motion_matching, nearest, states, transitions)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -72,6 +72,16 @@ def test_filtered_and_coverage_count_as_defined():
     assert m["coverage"] == 3 / 5  # 0, 3 and 20 are someone's nearest neighbour; 1 and 2 are not
     assert m["coverage_within_threshold"] == 2 / 5  # 20 only through the filtered transition
     assert m["distance_mean"] == pytest.approx(6.4 / 4)
+
+
+def test_coverage_at_equal_size_subsamples_every_row_to_the_smallest():
+    long, short = np.array([0, 1, 2, 3, 0, 1, 2, 3]), np.array([4, 4])
+    n, cov = equal_size_coverage([long, short, np.array([], int)], num_data=5, seed=0)
+    assert n == 2 and cov[1] == 1 / 5 and np.isnan(cov[2])
+    assert cov[0] in (1 / 5, 2 / 5)  # two of the long row's matches: one or two distinct neighbours
+    # unequal rows: the long row's plain coverage is 4/5, at equal size never more than 2/5
+    spread = {equal_size_coverage([long, short], 5, seed)[1][0] for seed in range(20)}
+    assert spread == {1 / 5, 2 / 5}
 
 
 # ---------------------------------------------------------------------- the state
@@ -132,5 +142,7 @@ def test_eval_motion_matching_command(small_dataset, tmp_path):
     rep = json.loads(r.stdout)
     assert rep == json.loads(out_json.read_text()) and rep["dataset"]["clips"] == 9
     assert rep["provenance"]["config"]["queries"] == 500 and "| motion |" in out_md.read_text()
+    row = rep["rows"][0]  # one row: its equal-size subset is all of it
+    assert row["coverage_n"] == row["transitions"] and row["coverage_equal_n"] == row["coverage"]
     r = CliRunner().invoke(app, [*args, "--threshold", "1.5"])
     assert r.exit_code == 0 and "threshold 1.500" in r.stdout, r.output

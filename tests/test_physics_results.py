@@ -217,7 +217,7 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
     assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |  |" in out, out
     assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
     assert "| prior | 2 |" in out and "| hybrid | 25.0 % |" in out
-    assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % | 60.0 | 1 / 3 |" in out and "threshold 3.668" in out
+    assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % |  | 60.0 | 1 / 3 |" in out and "threshold 3.668" in out
 
 
 def test_the_orderings_are_read_from_the_outputs(tmp_path):
@@ -244,6 +244,17 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     assert "hybrid above hybrid-vq, test clips played to the end | hybrid 93.0 %, hybrid-vq 95.0 % | does not hold |" in out
     assert "hybrid below hybrid-vq, test MPJPE | hybrid 49.0 mm, hybrid-vq 52.0 mm | holds |" in out
     assert "continuous" not in out.split("orderings")[1]  # no continuous run: no row claims anything of it
+    # with coverage at equal size in the report, the claim is read from it (the row that fell sooner had
+    # fewer transitions to cover with)
+    rows = [{**row("hybrid-m1", 1.5, 0.30), "coverage_equal_n": 0.25, "coverage_n": 4},
+            {**row("discrete+-m1", 2.0, 0.40), "coverage_equal_n": 0.20, "coverage_n": 4}]
+    (runs / "table1" / "table1.json").write_text(json.dumps({
+        "threshold": {"value": 3.0, "definition": "x"}, "dataset": {"transitions": 10, "jitter_m_s3": 1.0},
+        "rows": rows}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "| hybrid(1) coverage equal n above discrete+(1) (Table 1) | hybrid-m1 25.0 %, discrete+-m1 20.0 % | holds |" in out
+    assert "| coverage, equal n (4) |" in out and "| hybrid-m1 | 5 | 1.500 | 10.0 % | 30.0 % | 30.0 % | 25.0 % |" in out
 
 
 def test_the_status_says_where_each_run_stands(tmp_path):

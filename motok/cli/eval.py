@@ -178,7 +178,7 @@ def motion_matching(
     for r in rep["rows"]:
         t.add_row(str(r["motion"]), *[f.format(r[k]) for k, _, f in COLUMNS])
     d = rep["dataset"]
-    t.add_row("dataset", str(d["transitions"]), "", "", "", "", f"{d['jitter_m_s3']:.1f}",
+    t.add_row("dataset", str(d["transitions"]), "", "", "", "", "", f"{d['jitter_m_s3']:.1f}",
               f"{d['acceleration_m_s2']:.2f}")
     results.print(t)
     th = rep["threshold"]

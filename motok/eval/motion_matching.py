@@ -28,8 +28,10 @@ that far from the rest of the data; a generator with a higher filtered rate make
 the data does not have.
 
 **Coverage.** The share of dataset transitions that are the nearest neighbour of at least one
-generated transition (it grows with the number of generated transitions: compare rows of equal
-size); ``coverage_within_threshold`` counts only matches of transitions that are not filtered.
+generated transition; ``coverage_within_threshold`` counts only matches of transitions that are not
+filtered. Coverage grows with the number of generated transitions, and generations that fall stop
+early, so ``coverage_equal_n`` measures every row on the same number: a fixed-seed random subset of
+each row's transitions as large as the smallest row (``coverage_n``).
 
 Also jitter (m/s^3, :mod:`motok.eval.physical`) and acceleration (m/s^2: mean norm of the second
 difference of every joint times fps^2), at each artifact's own frame rate. Importing this
@@ -247,6 +249,15 @@ def match_metrics(dist: np.ndarray, index: np.ndarray, num_data: int, threshold:
             "coverage_within_threshold": float(len(np.unique(index[kept])) / num_data)}
 
 
+def equal_size_coverage(indices: list[np.ndarray], num_data: int, seed: int = 0) -> tuple[int, list[float]]:
+    """Coverage of each row's nearest-neighbour ``indices`` on a random subset (fixed ``seed``) of
+    as many transitions as the smallest non-empty row has, so that rows compare at equal size."""
+    n = min((len(i) for i in indices if len(i)), default=0)
+    rng = np.random.default_rng(seed)
+    return n, [float(len(np.unique(rng.choice(i, n, replace=False))) / num_data) if len(i) else float("nan")
+               for i in indices]
+
+
 @dataclass
 class Reference:
     """The dataset side of Eq. 8: its transitions normalised by their own mean and std, and the
@@ -345,7 +356,7 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
                         "dataset's transitions", "transition_dim": int(xd.shape[1]), "fps": ref.fps,
                "dataset": {"clips": len(ds.names), "transitions": int(len(xd)), "jitter_m_s3": ds.jitter_m_s3,
                            "acceleration_m_s2": ds.acceleration_m_s2}, "threshold": ref.threshold}
-        rows = []
+        rows, found = [], []
         for g in gens:
             task = bar.add_task(f"match {g.path}", total=len(g.x))
             t1 = time.perf_counter()
@@ -359,6 +370,10 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
                                    "filtered_rate": float((d[g.clip == c] > thr).mean())}
                                for c, n in enumerate(g.names)}
             rows.append(row)
+            found.append(i)
+    n, cov = equal_size_coverage(found, len(xd), seed)
+    for row, c in zip(rows, cov):
+        row["coverage_equal_n"], row["coverage_n"] = c, n
     out["rows"] = rows
     out["seconds"] = round(time.perf_counter() - t0, 2)
     out["provenance"] = json.loads(Provenance(command=command_line(), config={
@@ -381,7 +396,8 @@ def save(rep: dict, paths) -> None:
 
 COLUMNS = (("transitions", "transitions", "{:d}"), ("distance_mean", "distance ↓", "{:.3f}"),
            ("filtered_rate", "filtered ↓", "{:.1%}"), ("coverage", "coverage ↑", "{:.1%}"),
-           ("coverage_within_threshold", "coverage ≤ thr ↑", "{:.1%}"), ("jitter_m_s3", "jitter m/s³", "{:.1f}"),
+           ("coverage_within_threshold", "coverage ≤ thr ↑", "{:.1%}"),
+           ("coverage_equal_n", "coverage, equal n ↑", "{:.1%}"), ("jitter_m_s3", "jitter m/s³", "{:.1f}"),
            ("acceleration_m_s2", "accel. m/s²", "{:.2f}"))
 
 
@@ -392,7 +408,8 @@ def markdown(rep: dict) -> str:
     for r in rep["rows"]:
         lines.append(f"| {r['motion']} | " + " | ".join(f.format(r[k]) for k, _, f in COLUMNS) + " |")
     d = rep["dataset"]
-    lines.append(f"| dataset ({rep['data']}) | {d['transitions']} | | | | | {d['jitter_m_s3']:.1f} | "
+    lines.append(f"| dataset ({rep['data']}) | {d['transitions']} | | | | | | {d['jitter_m_s3']:.1f} | "
                  f"{d['acceleration_m_s2']:.2f} |")
-    t = rep["threshold"]
-    return "\n".join(lines) + f"\n\nThreshold {t['value']:.3f}: {t['definition']}.\n"
+    t, n = rep["threshold"], rep["rows"][0]["coverage_n"] if rep["rows"] else 0
+    return "\n".join(lines) + (f"\n\nThreshold {t['value']:.3f}: {t['definition']}. Coverage at equal n: "
+                                f"{n} transitions of each row, drawn at random.\n")

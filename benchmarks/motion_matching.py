@@ -20,7 +20,8 @@ import time
 import numpy as np
 import torch
 
-from motok.eval.motion_matching import brute_force, load_set, nearest, normaliser
+from motok.eval.motion_matching import brute_force, nearest, normaliser
+from motok.eval.transitions import load_set
 
 PAPER_TRANSITIONS = 800_000
 

@@ -15,7 +15,8 @@ from typer.testing import CliRunner
 from motok.artifacts import Provenance
 from motok.data.dataset import MotionFile, write_motion
 from motok.eval.motion_matching import (brute_force, derive_threshold, equal_size_coverage, match_metrics,
-                                        motion_matching, nearest, states, transitions)
+                                        motion_matching, nearest)
+from motok.eval.transitions import states, transitions
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

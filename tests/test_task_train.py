@@ -225,6 +225,11 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     pr = perturb_run(tmp_path / "straight", episodes=2, render=tmp_path / "balls.gif")
     assert pr["launched"] >= 1 and 0 <= pr["hits"] <= pr["launched"] and pr["episodes"] == 2
     assert (tmp_path / "straight" / "perturb.json").exists() and (tmp_path / "balls.gif").stat().st_size > 0
+    from motok.control.perturb import PerturbConfig
+    before = (tmp_path / "straight" / "perturb.json").read_text()
+    slow = perturb_run(tmp_path / "straight", episodes=1, cfg=PerturbConfig(period=0.6))
+    assert slow["written"].endswith("perturb_period0.6.json") and slow["config"]["period"] == 0.6
+    assert (tmp_path / "straight" / "perturb.json").read_text() == before  # the paper's result stays
 
 
 def test_the_command_line_knows_every_task():

@@ -234,7 +234,8 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
     """``motok control perturb --run RUN``: the thrown-ball test of a trained task policy, zero-shot:
     the same policy, prior and task, on the run's humanoid with a pool of balls added
     (:func:`motok.sim.balls.build_ball_model`, written next to the run); ``render``: a video of
-    environment 0's first episode with the balls and the task's markers."""
+    environment 0's first episode with the balls and the task's markers. Written to
+    ``RUN/perturb.json``, or ``RUN/perturb_periodP.json`` for another period than the paper's."""
     import json
     from dataclasses import asdict, replace
     from pathlib import Path
@@ -268,7 +269,8 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
         res["video"] = f"{path} ({backend})"
     res["provenance"] = json.loads(Provenance(command=command_line(), config={"run": str(run), "episodes": episodes,
                                                                              "seed": seed}).to_json())
-    out = run / "perturb.json"
+    # another period is another test: its own file, so that the paper's 0.3 s result is not overwritten
+    out = run / ("perturb.json" if cfg.period == PerturbConfig().period else f"perturb_period{cfg.period:g}.json")
     write_json(out, res)
     res["written"] = str(out)
     return res

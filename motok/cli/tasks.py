@@ -49,7 +49,8 @@ def perturb_cmd(
     run_dir: Path = input_option("--run", help="A control-task run folder (from `control train`), e.g. navigation."),
     episodes: int = typer.Option(64, "-n", "--num-samples", help="Episodes to run under fire."),
     seed: int = typer.Option(0, "--seed", help="Seed of the throws and of the task's starts and targets."),
-    period: float = typer.Option(0.3, "--period", help="Seconds between throws (the paper's 0.3; another period is written to RUN/perturb_periodP.json)."),
+    period: float = typer.Option(0.3, "--period", help="Seconds between throws (the paper's 0.3; another "
+                                 "period is written to RUN/perturb_periodP.json)."),
     render: Optional[Path] = output_option("--render", help="Video of the first episode with the balls "
                                            "(.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
     as_json: bool = JsonOut,

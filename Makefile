@@ -1,7 +1,7 @@
 # make demo: install into .venv and run the main job end to end on the default data
 #            (preprocess, tokenizer, GPT, text -> motion; about 13 minutes on 2 CPU cores, of which ~2 embed the captions with mpnet once; 370 MB caption cache).
 # make test: install the same way and run the test suite.
-# make demo-physics: the physics half at toy size (about 17 minutes on 2 CPU cores; see the target).
+# make demo-physics: the physics half at toy size (15 minutes on 2 quiet CPU cores; see the target).
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -57,9 +57,9 @@ demo: install
 # runs/demo/gpt exists, else a small tokenizer and GPT trained here on the six clips. The updates
 # run on one torch thread: beside another job two threads spin against it (a PPO update measured
 # 9.8 s on two threads, 0.25 s on one).
-# Measured on this 2-core machine beside another training (16.5 min): preprocess 9 s, expert
-# 7.5 min, distill 4.6 min, tokenizer + GPT 2.1 min (skipped with runs/demo/gpt), sample and
-# track 8 s, navigation 2.0 min, its evaluation and video 5 s.
+# Measured on a quiet 2-core machine (15.1 min, `make install` already done): preprocess 14 s,
+# expert 6.0 min, distill 3.5 min, tokenizer + GPT 2.8 min (skipped with runs/demo/gpt), sample
+# and track 9 s, navigation 2.3 min, its evaluation and video 7 s; beside another training 16.5 min.
 PHYS       := runs/demo-physics
 PHYS_GPT   := $(if $(wildcard $(DEMO)/gpt/bundle.json),$(DEMO)/gpt,$(PHYS)/gpt)
 PHYS_CLIPS := dataset-2_walk_normal_00[1-6]

@@ -244,6 +244,7 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     assert "hybrid above hybrid-vq, test clips played to the end | hybrid 93.0 %, hybrid-vq 95.0 % | does not hold |" in out
     assert "hybrid below hybrid-vq, test MPJPE | hybrid 49.0 mm, hybrid-vq 52.0 mm | holds |" in out
     assert "continuous" not in out.split("orderings")[1]  # no continuous run: no row claims anything of it
+    assert "navigation" not in out.split("orderings")[1]  # nor of navigation runs that are not there
     # with coverage at equal size in the report, the claim is read from it (the row that fell sooner had
     # fewer transitions to cover with)
     rows = [{**row("hybrid-m1", 1.5, 0.30), "coverage_equal_n": 0.25, "coverage_n": 4},
@@ -254,6 +255,14 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
                          timeout=60).stdout
     assert "| hybrid(1) coverage equal n above discrete+(1) (Table 1) | hybrid-m1 25.0 %, discrete+-m1 20.0 % | holds |" in out
+    for kind, closed, falls in (("hybrid", 0.5, 0.25), ("discrete+", 0.6, 0.125)):
+        (runs / f"nav_{kind}").mkdir()
+        (runs / f"nav_{kind}" / "eval_navigation.json").write_text(json.dumps({"approach_share": closed,
+                                                                               "falls_per_episode": falls}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "| navigation: hybrid above discrete+, share of the distance closed | hybrid 50.0 %, discrete+ 60.0 % | does not hold |" in out
+    assert "| navigation: hybrid below discrete+, falls per episode | hybrid 0.25, discrete+ 0.12 | does not hold |" in out
     assert "| coverage, equal n (4) |" in out and "| hybrid-m1 | 5 | 1.500 | 10.0 % | 30.0 % | 30.0 % | 25.0 % |" in out
 
 

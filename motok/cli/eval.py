@@ -159,7 +159,7 @@ def motion_matching(
     as_json: bool = JsonOut,
 ):
     """Table 1: distance to the nearest dataset transition (Eq. 8), filtered rate, coverage, jitter, acceleration."""
-    from motok.eval.motion_matching import COLUMNS, save
+    from motok.eval.motion_matching import COLUMNS, cells, save
     from motok.eval.motion_matching import motion_matching as _mm
 
     if sum(p.suffix.lower() == ".json" for p in outs) > 1 or sum(p.suffix.lower() == ".md" for p in outs) > 1:
@@ -176,10 +176,8 @@ def motion_matching(
     for _, header, _ in COLUMNS:
         t.add_column(header, justify="right")
     for r in rep["rows"]:
-        t.add_row(str(r["motion"]), *[f.format(r[k]) for k, _, f in COLUMNS])
-    d = rep["dataset"]
-    t.add_row("dataset", str(d["transitions"]), "", "", "", "", "", f"{d['jitter_m_s3']:.1f}",
-              f"{d['acceleration_m_s2']:.2f}")
+        t.add_row(str(r["motion"]), *cells(r))
+    t.add_row("dataset", *cells(rep["dataset"]))
     results.print(t)
     th = rep["threshold"]
     results.print(f"threshold {th['value']:.3f} ({th['definition']}); {rep['seconds']} s")

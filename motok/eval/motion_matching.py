@@ -295,15 +295,19 @@ COLUMNS = (("transitions", "transitions", "{:d}"), ("distance_mean", "distance â
            ("acceleration_m_s2", "accel. m/sÂ²", "{:.2f}"))
 
 
+def cells(row: dict) -> list[str]:
+    """One row's :data:`COLUMNS` as text; a column the row lacks (the dataset's own row has no
+    distance or coverage) is blank."""
+    return [f.format(row[k]) if k in row else "" for k, _, f in COLUMNS]
+
+
 def markdown(rep: dict) -> str:
     """The rows as a Markdown table, with the dataset's own jitter and acceleration and the threshold."""
     head = "| motion | " + " | ".join(c[1] for c in COLUMNS) + " |"
     lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
     for r in rep["rows"]:
-        lines.append(f"| {r['motion']} | " + " | ".join(f.format(r[k]) for k, _, f in COLUMNS) + " |")
-    d = rep["dataset"]
-    lines.append(f"| dataset ({rep['data']}) | {d['transitions']} | | | | | | {d['jitter_m_s3']:.1f} | "
-                 f"{d['acceleration_m_s2']:.2f} |")
+        lines.append(f"| {r['motion']} | " + " | ".join(cells(r)) + " |")
+    lines.append(f"| dataset ({rep['data']}) | " + " | ".join(cells(rep["dataset"])) + " |")
     t, n = rep["threshold"], rep["rows"][0]["coverage_n"] if rep["rows"] else 0
     return "\n".join(lines) + (f"\n\nThreshold {t['value']:.3f}: {t['definition']}. Coverage at equal n: "
                                 f"{n} transitions of each row, drawn at random.\n")

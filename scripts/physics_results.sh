@@ -28,7 +28,13 @@
 #   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
-# Settings (environment): R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
+# What issues 16-17 still need, first (the other priors and their navigation runs after):
+#   PRIORS="hybrid continuous" TABLE1=0 scripts/physics_results.sh data expert priors tasks nav taskeval t2p
+#   scripts/physics_results.sh                 # then the rest: the other three priors, Table 1, their navigation
+#
+# Settings (environment): PRIORS (some of: hybrid continuous discrete+ discrete hybrid-vq; unset: all)
+# the priors the `priors` stage distils, TABLE1=0 leaves their Table 1 generations to `prioreval`;
+# R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
 # GEN_N=64 samples of GEN_SECONDS=30 s per Table 1 row, EVAL_N=256 task episodes, BALLS_N=64
 # thrown-ball episodes; KIN_IT (unset: the recipes') iterations of the evaluator, tokenizer and GPT
@@ -61,6 +67,14 @@ BALLS_N=${BALLS_N:-64}
 KIN=()
 [ -n "${KIN_IT:-}" ] && KIN=(--set iterations="$KIN_IT")
 T2M_RECIPE=${T2M_RECIPE:-recipes/eval/t2m.yaml}
+ALL_PRIORS=(hybrid continuous discrete+ discrete hybrid-vq)
+read -ra wanted <<< "${PRIORS:-${ALL_PRIORS[*]}}"
+for k in "${wanted[@]}"; do
+    case " ${ALL_PRIORS[*]} " in *" $k "*) ;; *) echo "PRIORS: unknown prior '$k' (expected some of: ${ALL_PRIORS[*]})" >&2; exit 2 ;; esac
+done
+PRIORS=()  # in the queue's order, whatever the order asked
+for k in "${ALL_PRIORS[@]}"; do case " ${wanted[*]} " in *" $k "*) PRIORS+=("$k") ;; esac; done
+TABLE1=${TABLE1:-1}
 DATA=$R/bandai2.h5
 EXPERT=$R/expert_set2
 export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
@@ -120,13 +134,11 @@ stage_expert() {
     done
 }
 
-PRIORS=(hybrid continuous discrete+ discrete hybrid-vq)
-
 stage_priors() {
     for k in "${PRIORS[@]}"; do
         train "$R/prior_$k" "prior_$k" "${M[@]}" control distill --expert "$EXPERT" --prior "$k" \
             --recipe "recipes/control/prior_$k.yaml" --set iterations="$PRIOR_IT"
-        prior_evals "$k"  # at once: a session that ends mid-stage keeps every finished prior's numbers
+        prior_evals "$k" "$TABLE1"  # at once: a session that ends mid-stage keeps every finished prior's numbers
     done
 }
 
@@ -139,11 +151,13 @@ table1_rows() {
     esac
 }
 
-# prior_evals KIND: imitation on the train and test clips (Fig. 4) and the Table 1 generations of one prior.
+# prior_evals KIND [GENERATE]: imitation on the train and test clips (Fig. 4) and, unless GENERATE
+# is 0, the Table 1 generations of one prior.
 prior_evals() {
     local k=$1 p=$R/prior_$1 m tag
     once "$p/eval.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p"
     once "$p/eval_test.json" prior_eval "${M[@]}" control eval --task imitation --prior "$p" -d "$DATA" --split test
+    [ "${2:-1}" = 0 ] && return 0
     while read -r m tag; do
         local cb=()
         [ "$m" != all ] && cb=(--codebooks "$m")
@@ -155,7 +169,7 @@ prior_evals() {
 # Table 1 over every prior's generations (the evaluations above, for priors distilled before they ran in `priors`).
 stage_prioreval() {
     local gens=() k m tag
-    for k in "${PRIORS[@]}"; do
+    for k in "${ALL_PRIORS[@]}"; do
         [ -f "$R/prior_$k/bundle.json" ] || continue
         prior_evals "$k"
         while read -r m tag; do gens+=(--motions "$R/table1/$tag.h5"); done < <(table1_rows "$k")
@@ -235,7 +249,7 @@ plot() {
 
 stage_plots() {
     plot expert success,episode_seconds,r_im,samples_per_s,eval_success,eval_mpjpe_mm "$EXPERT"
-    plot priors eval_success,eval_mpjpe_mm,rollout_action_err,code_usage,samples_per_s "${PRIORS[@]/#/$R/prior_}"
+    plot priors eval_success,eval_mpjpe_mm,rollout_action_err,code_usage,samples_per_s "${ALL_PRIORS[@]/#/$R/prior_}"
     # r_task: the task reward per step, in [0, 1]: the return normalised by its maximum
     plot navigation r_task,episode_seconds,eval_reached_share,eval_approach_share,eval_falls_per_episode \
         "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1"

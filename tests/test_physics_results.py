@@ -22,7 +22,7 @@ SCRIPT = ROOT / "scripts" / "physics_results.sh"
 PRIORS = ("hybrid", "continuous", "discrete+", "discrete", "hybrid-vq")
 
 
-def queue(tmp_path: Path, *stages: str, checkpoints=(), outputs=()) -> list[list[str]]:
+def queue(tmp_path: Path, *stages: str, checkpoints=(), outputs=(), env=None) -> list[list[str]]:
     """Run the queue with a recorder in place of motok; the argv of every command it issued."""
     record = tmp_path / "argv.jsonl"
     shim = tmp_path / "record.py"
@@ -35,7 +35,7 @@ def queue(tmp_path: Path, *stages: str, checkpoints=(), outputs=()) -> list[list
     for f in outputs:
         (runs / f).parent.mkdir(parents=True, exist_ok=True)
         (runs / f).write_text("")
-    env = {**os.environ, "R": str(runs), "MOTOK": f"{sys.executable} {shim}"}
+    env = {**os.environ, "R": str(runs), "MOTOK": f"{sys.executable} {shim}", **(env or {})}
     p = subprocess.run(["bash", str(SCRIPT), *stages], env=env, capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stdout + p.stderr
     return [json.loads(line) for line in record.read_text().splitlines()] if record.exists() else []
@@ -102,6 +102,22 @@ def test_each_prior_is_evaluated_before_the_next_is_distilled(tmp_path):
     rows = [Path(mm[0][i + 1]).name for i, x in enumerate(mm[0]) if x == "--motions"]
     assert rows == [f"hybrid-m{m}.h5" for m in range(1, 9)] + ["continuous.h5"] + [f"discrete+-m{m}.h5"
                                                                                       for m in (1, 2, 3)]
+
+
+def test_some_priors_first_and_table1_later(tmp_path):
+    """PRIORS picks the priors `priors` distils (in the queue's order, whatever order it is given
+    in) and TABLE1=0 leaves their Table 1 generations to `prioreval`; an unknown name stops the
+    queue before anything runs."""
+    cmds = queue(tmp_path, "priors", env={"PRIORS": "continuous hybrid", "TABLE1": "0"})
+    assert [(a[1], out_of(a) if a[1] == "distill" else None) for a in cmds if a[1] != "eval"] == [
+        ("distill", "prior_hybrid"), ("distill", "prior_continuous")]
+    assert [a[1] for a in cmds] == ["distill", "eval", "eval"] * 2
+    (tmp_path / "later").mkdir()
+    cmds = queue(tmp_path / "later", "prioreval", checkpoints=["prior_hybrid"], env={"PRIORS": "continuous"})
+    assert [out_of(a) for a in cmds if a[1] == "generate"] == [f"hybrid-m{m}.h5" for m in range(1, 9)]
+    p = subprocess.run(["bash", str(SCRIPT), "priors"], env={**os.environ, "R": str(tmp_path / "bad"), "MOTOK": "false",
+                       "PRIORS": "hybrid hybird"}, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "unknown prior 'hybird'" in p.stderr and not (tmp_path / "bad").exists()
 
 
 def test_outputs_that_exist_are_not_made_again(tmp_path):

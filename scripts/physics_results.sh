@@ -28,9 +28,11 @@
 #   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
-# What issues 16-17 still need, first (the other priors and their navigation runs after):
-#   PRIORS="hybrid continuous" TABLE1=0 scripts/physics_results.sh data expert priors tasks nav taskeval t2p
-#   scripts/physics_results.sh                 # then the rest: the other three priors, Table 1, their navigation
+# On a fresh machine, the shortest chains first: text to physics (issue 17) needs only the hybrid
+# prior, the tasks (issue 16) the continuous one too; then the rest (three more priors, Table 1):
+#   PRIORS=hybrid TABLE1=0 scripts/physics_results.sh data expert priors t2p
+#   PRIORS="hybrid continuous" TABLE1=0 scripts/physics_results.sh priors tasks nav taskeval
+#   scripts/physics_results.sh
 #
 # Settings (environment): PRIORS (some of: hybrid continuous discrete+ discrete hybrid-vq; unset: all)
 # the priors the `priors` stage distils, TABLE1=0 leaves their Table 1 generations to `prioreval`;

@@ -212,7 +212,13 @@ stage_taskeval() {
         [ -f "$dir/bundle.json" ] || continue
         local t=navigation
         case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
-        once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" --render "$dir/$t.mp4"
+        if [ "$t" = navigation ]; then  # no reference motion: the targets are drawn
+            once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" \
+                --render "$dir/$t.mp4"
+        else  # Tables 2-3: windows and head trajectories of the test clips, never trained on
+            once "$dir/eval_${t}_test.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" \
+                -d "$DATA" --split test --render "$dir/$t.mp4"
+        fi
         [ "$t" = navigation ] && once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" \
             --render "$dir/balls.mp4"
     done

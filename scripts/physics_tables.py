@@ -175,7 +175,7 @@ def tasks(R: Path) -> str:
     for task in ("inbetween", "hmd"):
         rows = []
         for run in sorted(R.glob(f"{task}_*")):
-            e, m = load(run / f"eval_{task}.json"), metrics(run)
+            e, m = load(run / f"eval_{task}_test.json"), metrics(run)  # Tables 2-3: the test clips
             if e is None or not m:
                 continue
             keys = ["mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"]

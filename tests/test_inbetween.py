@@ -238,5 +238,29 @@ def test_evaluate_inbetween_on_pd_tracking(hum, lib):
         evaluate_inbetween(mdp, lambda o, g: np.zeros((2, mdp.action_dim)), 0)
 
 
+def test_evaluation_plays_failed_windows_to_their_end(hum, lib):
+    """Table 2's errors are over whole windows: with a failure test that fires within a few frames
+    (1 cm mean body distance), the same windows give the same errors as when nothing fails, every
+    episode is a failure, its seconds stop where the test first fired, and training's early
+    termination is back on afterwards."""
+    zero = lambda obs, goal: np.zeros((len(obs), mdp.action_dim))  # noqa: E731
+    mdp = _mdp(hum, lib, 2, seed=1)
+    ok = evaluate_inbetween(mdp, zero, 3)
+    mdp = _mdp(hum, lib, 2, seed=1, termination_distance=0.01)
+    bad = evaluate_inbetween(mdp, zero, 3)
+    assert ok["success_rate"] == 1.0 and bad["success_rate"] == 0.0
+    assert 0 < bad["seconds_mean"] < ok["seconds_mean"] == pytest.approx(17 / 30)
+    for m in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"):
+        for pre in ("", "keyframe_"):
+            assert bad[f"{pre}{m}_mean"] == pytest.approx(ok[f"{pre}{m}_mean"], rel=1e-9)
+    assert mdp.task.cfg.early_termination  # training still ends an episode at the failure
+    mdp.reset()
+    for _ in range(3):
+        _, _, _, term, _, info = mdp.step(np.zeros((2, mdp.action_dim)))
+        if term.any():
+            break
+    assert term.any() and np.array_equal(term, info["off_track"])
+
+
 
 

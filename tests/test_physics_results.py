@@ -134,6 +134,24 @@ def test_tasks_wait_for_their_prior(tmp_path):
     assert stds == ["net.std=0.2", "net.std=0.1"]
 
 
+def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):
+    """In-betweening and head tracking are evaluated on windows of the test split (their policies
+    trained on the train clips); navigation draws its targets and needs no clips."""
+    cmds = queue(tmp_path, "taskeval", checkpoints=["nav_hybrid", "inbetween_hybrid", "hmd_continuous"])
+    evals = {Path(a[a.index("--run") + 1]).name: a for a in cmds if a[:2] == ["control", "eval"]}
+    assert set(evals) == {"nav_hybrid", "inbetween_hybrid", "hmd_continuous"}
+    for name in ("inbetween_hybrid", "hmd_continuous"):
+        a = evals[name]
+        assert a[a.index("--split") + 1] == "test" and a[a.index("-d") + 1].endswith("bandai2.h5")
+    assert "--split" not in evals["nav_hybrid"]
+    done = ["inbetween_hybrid/eval_inbetween_test.json", "hmd_continuous/eval_hmd_test.json",
+            "nav_hybrid/eval_navigation.json", "nav_hybrid/perturb.json"]
+    (tmp_path / "again").mkdir()
+    cmds = queue(tmp_path / "again", "taskeval", checkpoints=["nav_hybrid", "inbetween_hybrid", "hmd_continuous"],
+                 outputs=done)
+    assert cmds == []
+
+
 def test_an_unknown_stage_fails_before_anything_runs(tmp_path):
     p = subprocess.run(["bash", str(SCRIPT), "data", "bogus"], env={**os.environ, "R": str(tmp_path / "runs"),
                        "MOTOK": "false"}, capture_output=True, text=True, timeout=60)

@@ -95,9 +95,7 @@ def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render,
     from motok.control.task_train import evaluate_run
 
     res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render,
-              device=device)
-    if res["task"] != task:
-        fail(f"{run_dir} is a {res['task']!r} policy, not {task!r}")
+              device=device, task=task)
     if as_json:
         res.pop("provenance")
         report(res, True, "")

@@ -3,10 +3,18 @@
 ``act(obs, goal) -> actions`` (numpy, every environment at once) runs on the ``mdp`` from fresh
 episodes (the task's generator draws the windows and keyframes) until ``episodes`` have ended, a
 fixed share per environment (``nav_eval.episode_quota``: stopping at the first ``episodes`` to end
-would over-count short, failed ones). An episode **succeeds** when it reaches its end (the last
-keyframe, the end of the head trajectory) without early termination.
+would over-count short, failed ones).
 
-Per episode, over the frames it played (the start state included), the errors of the fork's
+Every episode plays its whole window or trajectory: early termination is off while evaluating, as
+in the fork's test mode. With it on, a failed episode would count only the frames before it
+failed, where the errors are small by construction, and the keyframe columns would leave out the
+episodes that failed before their first target keyframe: the policies that fail more would look
+closer. An episode **succeeds** when the task's failure test (``info["off_track"]``: the mean body
+distance above 0.5 m for in-betweening, the head more than 1 m off for HMD) never fired and the
+simulation did not diverge; ``seconds`` is the time until that test first fired (the whole
+episode if never).
+
+Per episode, over all its frames (the start state included), the errors of the fork's
 ``compute_metrics_lite`` (PHC's evaluation, all bodies): **MPJPE** (root-relative) and
 **G-MPJPE** (global) in mm, **velocity** (mm/frame) and **acceleration** (mm/frame^2) errors of
 the global body positions (first and second differences ending at each frame), with the helpers
@@ -14,17 +22,14 @@ of ``motok.eval.metrics``. ``motok.control.evaluate`` reports the root's velocit
 errors instead. In-betweening also reports them at the target keyframes only (``keyframe_*``: the
 frames of keyframes 2..K; the start keyframe is the initial state, which the fork's keyframe
 metrics include). HMD also reports the head's global error and the share of frames with the head
-within the termination distance (the fork's "success rate", with its early termination off).
+within the termination distance (the fork's "success rate").
 Results: ``<metric>_mean`` / ``<metric>_std`` over episodes (population std; NaN-free episodes
 only), ``success_rate``, ``seconds_mean`` and the per-episode values under ``per_episode``.
-
-The fork evaluates with early termination off; here the task's setting holds, so a fallen
-episode counts as a failure with the errors of the frames it played (set
-``early_termination: false`` in the task config for the fork's protocol).
 """
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from typing import Callable
 
 import numpy as np
@@ -112,6 +117,7 @@ def _run(mdp: TaskEnv, act: Act, episodes: int, acc: EpisodeErrors) -> dict:
     def ref_pos():
         return lib.body_pos[lib.frame_index(task.clip, task.frame)]
 
+    off_at = np.zeros(N, dtype=np.int64)  # the step the failure test first fired in the episode, 0: not yet
     obs, goal = mdp.reset()
     acc.clear(slice(None))
     acc.record(env.bodies.pos, ref_pos(), done < quota)
@@ -119,33 +125,49 @@ def _run(mdp: TaskEnv, act: Act, episodes: int, acc: EpisodeErrors) -> dict:
         live = done < quota
         obs, goal, _, term, trunc, info = mdp.step(act(obs, goal))
         acc.record(env.bodies.pos, ref_pos(), live, info.get("at_keyframe"))
+        steps = np.asarray(info["episode_steps"])
+        off_at = np.where((off_at == 0) & np.asarray(info["off_track"]), steps, off_at)
         ended = np.flatnonzero(term | trunc)
         if not len(ended):
             continue
         counted = ended[live[ended]]
         rows.append(acc.means(counted))
-        success.append(trunc[counted])
-        seconds.append(info["episode_steps"][counted] * env.dt)
+        success.append(trunc[counted] & (off_at[counted] == 0))  # term: a diverged simulation or invalid action
+        seconds.append(np.where(off_at[counted] > 0, off_at[counted], steps[counted]) * env.dt)
         done[counted] += 1
         obs, goal = mdp.reset(ended)
         acc.clear(ended)
+        off_at[ended] = 0
         fresh = np.zeros(N, bool)
         fresh[ended] = done[ended] < quota[ended]
         acc.record(env.bodies.pos, ref_pos(), fresh)
     return _summary(acc.names, np.concatenate(rows), np.concatenate(success), np.concatenate(seconds))
 
 
+@contextmanager
+def whole_episodes(task):
+    """Early termination off on ``task`` (its config) for the duration, restored afterwards."""
+    before = task.cfg.early_termination
+    task.cfg.early_termination = False
+    try:
+        yield
+    finally:
+        task.cfg.early_termination = before
+
+
 def evaluate_inbetween(mdp: TaskEnv, act: Act, episodes: int) -> dict:
     """Table 2 protocol: ``episodes`` 4 s windows with ``cfg.eval_keyframes`` keyframes each (5,
-    where training uses 4), errors over all frames and at the target keyframes. The task's
-    keyframe count is restored afterwards and every environment reset."""
+    where training uses 4), played to their end, errors over all frames and at the target
+    keyframes. The task's keyframe count and early termination are restored afterwards and every
+    environment reset."""
     task = mdp.task
     if not isinstance(task, InbetweenTask):
         raise UserError(f"evaluate_inbetween needs a TaskEnv around an InbetweenTask, got {type(task).__name__}")
     before = task.num_keyframes
     task.set_keyframe_count(task.cfg.eval_keyframes)
     try:
-        out = _run(mdp, act, episodes, EpisodeErrors(mdp.num_envs))
+        with whole_episodes(task):
+            out = _run(mdp, act, episodes, EpisodeErrors(mdp.num_envs))
     finally:
         task.set_keyframe_count(before)
         mdp.reset()
@@ -153,11 +175,14 @@ def evaluate_inbetween(mdp: TaskEnv, act: Act, episodes: int) -> dict:
 
 
 def evaluate_hmd(mdp: TaskEnv, act: Act, episodes: int) -> dict:
-    """Table 3 protocol: ``episodes`` 5 s head trajectories, full-body errors over all frames plus
-    the head's own error and the share of frames it stayed within the termination distance."""
+    """Table 3 protocol: ``episodes`` 5 s head trajectories, played to their end, full-body errors
+    over all frames plus the head's own error and the share of frames it stayed within the
+    termination distance. Early termination is restored afterwards."""
     task = mdp.task
     if not isinstance(task, HMDTask):
         raise UserError(f"evaluate_hmd needs a TaskEnv around an HMDTask, got {type(task).__name__}")
-    out = _run(mdp, act, episodes, EpisodeErrors(mdp.num_envs, head=task.head, within=task.cfg.termination_distance))
+    with whole_episodes(task):
+        out = _run(mdp, act, episodes, EpisodeErrors(mdp.num_envs, head=task.head,
+                                                     within=task.cfg.termination_distance))
     return {k: v for k, v in out.items() if not k.startswith("keyframe_")} | \
         {"per_episode": {k: v for k, v in out["per_episode"].items() if not k.startswith("keyframe_")}}

@@ -168,6 +168,9 @@ def evaluate_policy(cfg: TaskTrainConfig, hum, lib, model: LatentPrior, scale: f
     res = registry.evaluate(cfg.task, mdp, act, episodes)
     if render is not None:
         one = task_mdp(cfg, hum, lib, model, scale, seed, SimConfig(**{**host, "num_envs": 1}))
+        if hasattr(one.task, "set_keyframe_count"):  # in-betweening: the video shows the evaluated keyframe count
+            one.task.set_keyframe_count(one.task.cfg.eval_keyframes)
+            one.reset()
         res["video"] = render_episode(one, act, render, f"{cfg.task} over the {model.kind} prior")
     return res
 
@@ -250,12 +253,15 @@ def load_task_run(run) -> tuple[TaskTrainConfig, Humanoid, ActorCritic, LatentPr
 
 
 def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
-                 split: str | None = None, render=None, device: str | None = None) -> dict:
+                 split: str | None = None, render=None, device: str | None = None, task: str | None = None) -> dict:
     """``motok control eval --task T --run RUN``: the task's evaluation of the policy in ``run``
     on ``episodes`` episodes (start states from its clips, or those of ``data`` / ``clips`` /
-    ``split``), written to ``RUN/eval_TASK[_SPLIT].json`` with the checkpoint and provenance."""
+    ``split``), written to ``RUN/eval_TASK[_SPLIT].json`` with the checkpoint and provenance.
+    ``task``, when given, must be the run's (checked before any work)."""
     run = Path(run)
     cfg, hum, ac, model, scale, meta = load_task_run(run)
+    if task is not None and task != cfg.task:
+        raise UserError(f"{run} is a {cfg.task!r} policy, not {task!r}")
     cfg.env.on(device)
     src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split)
     res = evaluate_policy(cfg, hum, lib, model, scale, ac, episodes, seed, render=render)

@@ -11,6 +11,7 @@ head trajectory, as a VR headset reports it, with the whole body.
 * terminated: the head more than ``termination_distance`` from the reference head (1 m, the
   paper's; the fork's recipe uses 1.5 m), a diverged simulation or an invalid action;
   truncated: ``episode_seconds`` (5 s) played, or the clip's end for a given start near it.
+  ``info["off_track"]`` is the head test whether or not it ends the episode (``early_termination``).
 """
 
 from __future__ import annotations
@@ -109,11 +110,13 @@ class HMDTask:
         refs = reference_bodies(self.lib, self.clip[:, None], self.frame[:, None] + self._window)
         sim, ref = env.bodies, refs.take((slice(None), 0))
         dist = head_distance(sim.pos, ref.pos, self.head)
-        lost = head_lost(dist, c.termination_distance) if c.early_termination else xp(dist).zeros_like(diverged)
+        off_track = head_lost(dist, c.termination_distance)
+        lost = off_track if c.early_termination else xp(dist).zeros_like(diverged)
         rewards, terminated, truncated = end_of_step(head_reward(head_errors(sim, ref, self.head), c.reward), lost,
                                                      diverged, invalid, self.steps, self.limit)
         self._goal = head_goal(sim, refs.take((slice(None), slice(1, None))), self.head)
         info = {"clip": copy(self.clip), "frame": copy(self.frame), "head_error": dist,
-                "mean_body_error": body_distances(sim, ref).mean(-1), "head_lost": lost, "diverged": diverged,
+                "mean_body_error": body_distances(sim, ref).mean(-1), "head_lost": lost, "off_track": off_track,
+                "diverged": diverged,
                 "invalid_action": invalid, "episode_steps": copy(self.steps)}
         return rewards, terminated, truncated, info

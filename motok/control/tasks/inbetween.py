@@ -17,6 +17,8 @@ reference window at their frames.
 * terminated: the bodies too far from the reference (``mdp.terminations.tracking_failure``: the
   fork's ``error_mean``, mean body distance > 0.5 m; the fork leaves the feet out of that mean),
   a diverged simulation or an invalid action; truncated: the last keyframe's frame is reached.
+  ``info["off_track"]`` is that distance test whether or not it ends the episode
+  (``early_termination``), for evaluations that play every window to its end.
 
 Book-keeping that differs from the fork: the goal moves on to the next keyframe at the frame a
 keyframe is reached (the fork shows the reached keyframe for one more step, with 0 frames left),
@@ -187,14 +189,15 @@ class InbetweenTask:
                                env.end_effectors)
         dist = body_distances(sim, ref)
         x = xp(dist)
-        fell = tracking_failure(dist, c.termination, c.termination_distance) if c.early_termination \
-            else x.zeros_like(diverged)
+        off_track = tracking_failure(dist, c.termination, c.termination_distance)
+        fell = off_track if c.early_termination else x.zeros_like(diverged)
         rewards, terminated, truncated = end_of_step(inbetween_reward(err, c.reward), fell, diverged, invalid,
                                                      self.steps, self.limit)
         hit = self.keyframes[:, 1:] == self.frame[:, None]  # the start keyframe is no target
         info = {"clip": copy(self.clip), "frame": copy(self.frame), "at_keyframe": hit.any(1),
                 "keyframe_index": x.where(hit.any(1), (hit * 1).argmax(1) + 1, -1),
-                "max_body_error": x.amax(dist, -1), "mean_body_error": dist.mean(-1), "diverged": diverged,
+                "max_body_error": x.amax(dist, -1), "mean_body_error": dist.mean(-1), "off_track": off_track,
+                "diverged": diverged,
                 "invalid_action": invalid, "episode_steps": copy(self.steps)}
         self._refresh_goal(slice(None))
         return rewards, terminated, truncated, info

@@ -169,8 +169,7 @@ def evaluate_policy(cfg: TaskTrainConfig, hum, lib, model: LatentPrior, scale: f
     if render is not None:
         one = task_mdp(cfg, hum, lib, model, scale, seed, SimConfig(**{**host, "num_envs": 1}))
         if hasattr(one.task, "set_keyframe_count"):  # in-betweening: the video shows the evaluated keyframe count
-            one.task.set_keyframe_count(one.task.cfg.eval_keyframes)
-            one.reset()
+            one.task.set_keyframe_count(one.task.cfg.eval_keyframes)  # render_episode resets first
         res["video"] = render_episode(one, act, render, f"{cfg.task} over the {model.kind} prior")
     return res
 

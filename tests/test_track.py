@@ -76,6 +76,20 @@ def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, smal
     assert (tmp_path / "s.gif").exists() and (tmp_path / "s.bvh").stat().st_size > 1000
 
 
+def test_tracking_in_chunks_changes_nothing(pd_controller, small_dataset, tmp_path):
+    """The reference library is built a chunk of clips at a time (memory); chunks of one clip and
+    batches of two give the clips, frames and per-clip results of one library and one batch."""
+    glob = "dataset-2_walk_normal_00[1-4]"
+    whole = track(pd_controller, small_dataset, tmp_path / "whole.h5", clips=glob)
+    parts = track(pd_controller, small_dataset, tmp_path / "parts.h5", clips=glob, chunk=1, batch=2)
+    assert parts["per_clip"] == whole["per_clip"] and len(whole["per_clip"]) == 4
+    with MotionFile(tmp_path / "whole.h5", "motion") as a, MotionFile(tmp_path / "parts.h5", "motion") as b:
+        assert list(a.names) == list(b.names)
+        for n in a.names:
+            assert np.array_equal(a.clip(n).joints, b.clip(n).joints) and np.array_equal(a.clip(n).features,
+                                                                                     b.clip(n).features)
+
+
 def test_a_split_of_a_dataset_is_tracked(pd_controller, small_dataset, tmp_path):
     """``split``: the clips of that split only (the real-test-motion row of issue 17's evaluation),
     alone or with a glob; a split the data lacks is named."""

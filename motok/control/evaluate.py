@@ -63,7 +63,8 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
         obs, goal, _, term, trunc, info = mdp.step(a.cpu().numpy())
         worst = np.where(active, np.maximum(worst, info["max_body_error"]), worst)
         pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[lib.frame_index(it.clip, it.frame)])
-        alive.append(active.copy())
+        # A diverged simulation was put back to a default pose: that frame was never played.
+        alive.append(active & ~np.asarray(info["diverged"], bool))
         if keep_qpos:
             qpos.append(env.qpos[0].copy())
         played += active

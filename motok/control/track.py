@@ -88,11 +88,15 @@ def load_controller(expert=None, prior=None, codebooks: int | None = None) -> tu
 
 
 def track(controller, motion, out, *, clips: str | None = None, split: str | None = None, render=None,
-          batch: int = 256) -> dict:
+          batch: int = 256, chunk: int = 2048) -> dict:
     """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with ``controller``, a
     ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
     returns, and write the simulated clips to ``out``, and the per-clip and overall results beside
-    it (:func:`report_path`, kind ``control-track``), which it also returns."""
+    it (:func:`report_path`, kind ``control-track``), which it also returns.
+
+    ``batch`` clips are simulated at once, longest first; their reference library is built for
+    ``chunk`` clips at a time (a GPT evaluation's 11,000 samples at the control rate in float64
+    would fill this machine's memory), never cached (each motion is tracked once)."""
     from motok.data.dataset import select_clips
 
     cfg, hum, ac, meta = controller
@@ -101,46 +105,51 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
         names = select_clips(motion, clips, split) if clips or split else list(mf.names)
         fps, skeleton, legacy = mf.fps, mf.skeleton, mf.legacy
         offsets = np.asarray(mf.offsets, dtype=np.float64)
-        refs = {n: mf.clip(n) for n in names}
-    lengths = {n: c.num_frames for n, c in refs.items()}
+        frames = np.diff(mf.frame_offsets)
+        lengths = {n: int(frames[mf.index(n)]) for n in names}
     hz = float(cfg.env.control_hz or hum.control_hz)
     short = [n for n in names if int(lengths[n] * hz / fps) < MIN_FRAMES]
     kept = [n for n in names if n not in short]
     if not kept:
         raise UserError(f"{motion}: no clip is long enough to track (at least {MIN_FRAMES} frames at {hz:g} Hz)")
-    lib, shift = place_on_floor(load_library(hum, motion, control_hz=hz, clips=kept))
+    # Longest first, so that a batch's clips end together; the first clip leads, for the video.
+    order = kept[:1] + sorted(kept[1:], key=lambda n: -lengths[n])
     task = replace(cfg.task, max_episode_seconds=1e9)
     per, written, video = {}, [], None
-    order = np.argsort(-lib.lengths, kind="stable")
-    for start in range(0, len(order), batch):
-        ids = order[start:start + batch]
-        first = render is not None and 0 in ids
-        if first:
-            ids = np.concatenate([[0], ids[ids != 0]])
-        res = play(hum, ac, lib, ids, cfg.env, task, cfg.action, keep_qpos=first)
-        if first:
-            video = (res["qpos"], int(res["played"][0]))
-        for k, i in enumerate(ids):
-            alive = res["alive"][k]
-            p, r = res["pos"][k, alive], res["ref"][k, alive]
-            name = lib.names[i]
-            per[name] = {"tracked_to_end": bool(res["success"][k]), "seconds": float(res["played"][k] / hz),
-                         "clip_seconds": float((lib.lengths[i] - 1 - task.goal_frames) / hz),
-                         "floor_shift_m": float(shift[i]), "mpjpe_mm": float(mpjpe(p, r).mean()),
-                         "g_mpjpe_mm": float(mpjpe(p, r, root_relative=False).mean())}
-            if len(p) * fps / hz >= 2:
-                ref = refs[name]  # its split, labels and captions, so text metrics apply to the result
-                written.append(simulated_clip(name, p, hz, fps, skeleton, offsets, legacy, str(motion),
-                                              split=ref.split, labels=ref.labels, captions=ref.captions))
-            else:
-                per[name]["error"] = "failed before two frames at the motion's rate were simulated: nothing written"
+    with MotionFile(motion) as mf:
+        for c0 in range(0, len(order), chunk):
+            lib, shift = place_on_floor(load_library(hum, motion, control_hz=hz, clips=order[c0:c0 + chunk],
+                                                     use_cache=False))
+            for start in range(0, len(lib), batch):
+                ids = np.arange(start, min(start + batch, len(lib)))
+                first = render is not None and c0 == 0 and start == 0
+                res = play(hum, ac, lib, ids, cfg.env, task, cfg.action, keep_qpos=first)
+                if first:
+                    played = int(res["played"][0])
+                    video = (res["qpos"][:played + 1], lib.qpos[lib.starts[0]:lib.starts[0] + played + 1], lib.names[0])
+                for k, i in enumerate(ids):
+                    alive = res["alive"][k]
+                    p, r = res["pos"][k, alive], res["ref"][k, alive]
+                    name = lib.names[i]
+                    per[name] = {"tracked_to_end": bool(res["success"][k]), "seconds": float(res["played"][k] / hz),
+                                 "clip_seconds": float((lib.lengths[i] - 1 - task.goal_frames) / hz),
+                                 "floor_shift_m": float(shift[i]), "mpjpe_mm": float(mpjpe(p, r).mean()),
+                                 "g_mpjpe_mm": float(mpjpe(p, r, root_relative=False).mean())}
+                    if len(p) * fps / hz >= 2:
+                        ref = mf.clip(name)  # its split, labels and captions, so text metrics apply to the result
+                        written.append(simulated_clip(name, p, hz, fps, skeleton, offsets, legacy, str(motion),
+                                                      split=ref.split, labels=ref.labels, captions=ref.captions))
+                    else:
+                        per[name]["error"] = "failed before two frames at the motion's rate were simulated: nothing written"
+            del lib  # the next chunk's library replaces it, not beside it
     for n in short:
         per[n] = {"tracked_to_end": False, "error": f"{lengths[n]} frames at {fps:g} fps: too short to track "
                                                      f"(at least {MIN_FRAMES} frames at {hz:g} Hz)"}
     if not written:
         raise UserError(f"{motion}: no clip could be tracked ({next(iter(per.values())).get('error', '')})")
     ordered = {n: per[n] for n in names}
-    written.sort(key=lambda c: names.index(c.name))
+    position = {n: k for k, n in enumerate(names)}
+    written.sort(key=lambda c: position[c.name])
     prov = Provenance(command=command_line(), config={"motion": str(motion), "clips": clips,
                                                       "controller": meta.get("kind"), "termination": task.termination,
                                                       "termination_distance": task.termination_distance},
@@ -153,10 +162,8 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
                "g_mpjpe_mm": float(np.mean([v["g_mpjpe_mm"] for v in ok])) if ok else float("nan")}
     if render is not None and video is not None:
         from motok.sim.render import render_trajectory
-        qpos, played = video
-        ghost = lib.qpos[lib.starts[0]:lib.starts[0] + played + 1]
-        path, backend = render_trajectory(hum, qpos[:played + 1], render, hz, ghost=ghost,
-                                          title=f"tracked {lib.names[0]}")
+        qpos, ghost, name = video
+        path, backend = render_trajectory(hum, qpos, render, hz, ghost=ghost, title=f"tracked {name}")
         summary["video"] = f"{path} ({backend})"
     write_json(report_path(out), {"kind": REPORT_KIND, "schema_version": 1, **summary, "per_clip": ordered,
                                   "provenance": json.loads(prov.to_json())})

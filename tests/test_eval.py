@@ -166,6 +166,14 @@ def test_penetration_floating_and_jitter():
     high[..., 1] += 0.10
     p = physical_metrics(high, 20.0, FEET)
     assert p["floating_cm"] == pytest.approx(5.0) and p["penetration_cm"] == 0.0
+    assert p["floating_placed_cm"] == 0.0  # placed on the floor as a whole, it stands
+    # a generator's heights: sunk 4 cm for half the clip, floating 8 cm for the other half; placed
+    # as a whole on its lowest moment it floats 12 cm (7 above the tolerance) half the time
+    bob = _standing()
+    bob[..., 1] += np.where(np.arange(len(bob)) < len(bob) // 2, -0.04, 0.08)[:, None]
+    p = physical_metrics(bob, 20.0, FEET)
+    assert p["penetration_cm"] == pytest.approx(2.0) and p["floating_cm"] == pytest.approx(1.5)
+    assert p["floating_placed_cm"] == pytest.approx(3.5)
     j = _standing()
     j[:, 16, 1] = np.where(np.arange(40) % 10 < 5, 0.0, 0.10)  # a toe that lifts 10 cm: contact half the time
     j[:, 16, 2] += np.arange(40) * 0.01  # and drifts 20 cm/s along z all the while

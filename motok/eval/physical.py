@@ -15,6 +15,11 @@ artifact stores them), so they apply to real motion, reconstructions and generat
 - ground penetration: mean depth (cm) of the lowest foot joint below the floor, per frame;
 - floating: mean height (cm) of the lowest foot joint above ``float_tolerance``, per frame
   (jumps count too: real motion gives the baseline);
+- floating, placed (``floating_placed_cm``): the same after the clip is moved vertically, as a
+  whole, so that its lowest joint over the clip is at y = 0: how the feature pipeline places real
+  and simulated motion (so their penetration is 0 by construction). A generator's own heights can
+  sink a foot in one frame and float it in another; this column compares them with real and
+  tracked motion on equal terms;
 - jitter: mean jerk, the norm of the third time derivative of every joint (m/s^3).
 
 Contact comes from heights, never from the features' contact channels: a generator predicts
@@ -41,6 +46,7 @@ class PhysicalSums:
     contact_steps: int = 0
     penetration: float = 0.0
     floating: float = 0.0
+    floating_placed: float = 0.0
     frames: int = 0
     jerk: float = 0.0
     jerk_frames: int = 0
@@ -59,6 +65,7 @@ class PhysicalSums:
                 "contact_fraction": div(self.contact_steps, max(self.frames - self.clips, 0) * self.feet),
                 "penetration_cm": 100 * div(self.penetration, self.frames),
                 "floating_cm": 100 * div(self.floating, self.frames),
+                "floating_placed_cm": 100 * div(self.floating_placed, self.frames),
                 "jitter_m_s3": div(self.jerk, self.jerk_frames),
                 "clips": self.clips, "frames": self.frames}
 
@@ -85,6 +92,7 @@ def clip_sums(joints: np.ndarray, fps: float, feet: tuple[tuple[int, ...], tuple
     lowest = x[:, all_feet, 1].min(1)
     s.penetration = float(np.maximum(-lowest, 0.0).sum())
     s.floating = float(np.maximum(lowest - float_tolerance, 0.0).sum())
+    s.floating_placed = float(np.maximum(lowest - x[..., 1].min() - float_tolerance, 0.0).sum())
     if T >= 4:
         jerk = np.diff(x, n=3, axis=0) * fps ** 3
         s.jerk = float(np.linalg.norm(jerk, axis=-1).mean(-1).sum())

@@ -86,7 +86,7 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
 COLUMNS = [("R@1", "R@1 ↑"), ("R@2", "R@2 ↑"), ("R@3", "R@3 ↑"), ("FID", "FID ↓"), ("MM-Dist", "MM-Dist ↓"),
            ("Diversity", "Diversity →"), ("MModality", "MModality ↑")]
 PHYSICAL = [("skate_cm_s", "Skate cm/s"), ("penetration_cm", "Penetr. cm"), ("floating_cm", "Float cm"),
-            ("jitter_m_s3", "Jitter m/s³")]
+            ("floating_placed_cm", "Float placed cm"), ("jitter_m_s3", "Jitter m/s³")]
 
 
 def _t2m_cells(res: dict) -> list[str]:

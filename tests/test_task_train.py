@@ -238,6 +238,27 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     assert (tmp_path / "straight" / "perturb.json").read_text() == before  # the paper's result stays
 
 
+def test_in_betweening_is_evaluated_on_the_clips_of_another_split(tiny_prior, small_dataset, tmp_path):
+    """Tables 2-3 read the test clips of a policy trained on others: `--data --split` gives the
+    windows, and the result is written as eval_TASK_SPLIT.json with the split in its provenance."""
+    from motok.data.dataset import MotionFile
+
+    with MotionFile(small_dataset) as mf:
+        test = [mf.names[i] for i in mf.split_indices("test")]
+    assert test  # the slice has test clips
+    cfg = small_cfg(task="inbetween", iterations=1)
+    cfg.tasks.inbetween = replace(cfg.tasks.inbetween, window_seconds=1.0, num_keyframes=3, eval_keyframes=4,
+                                  min_keyframe_gap_seconds=0.2)
+    cfg.env.num_envs = 4
+    cfg.ppo = replace(cfg.ppo, horizon=4, minibatch_size=16, epochs=1)
+    train_from_prior(cfg, tiny_prior, tmp_path / "ib")
+    res = evaluate_run(tmp_path / "ib", episodes=3, data=small_dataset, split="test", render=tmp_path / "ib.gif")
+    assert res["written"].endswith("eval_inbetween_test.json") and res["episodes"] == 3
+    assert res["keyframes_per_window"] == 4 and len(res["per_episode"]["success"]) == 3
+    saved = json.loads((tmp_path / "ib" / "eval_inbetween_test.json").read_text())
+    assert saved["provenance"]["config"]["split"] == "test" and (tmp_path / "ib.gif").stat().st_size > 0
+
+
 def test_the_command_line_knows_every_task():
     from motok.cli.priors import EVAL_TASKS
     from motok.control.tasks import registry

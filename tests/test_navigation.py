@@ -13,7 +13,7 @@ import pytest
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.navigation import head_fell, heading_frame_target, navigation_reward, sample_targets
 from motok.control.mdp.resets import reference_state
-from motok.control.nav_eval import MIN_IDLE_SECONDS, episode_quota, evaluate_navigation, idle_matching, stays
+from motok.control.nav_eval import IDLE_SPEED, MIN_IDLE_SECONDS, episode_quota, evaluate_navigation, idle_matching, stays
 from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig
 from motok.errors import UserError
@@ -225,9 +225,9 @@ def test_invalid_actions_get_no_reward_and_terminate(hum, lib):
 def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
     assert episode_quota(7, 3).tolist() == [3, 2, 2] and episode_quota(2, 3).tolist() == [1, 1, 0]
 
-    def run(episodes, n=2, **cfg):
+    def run(episodes, n=2, idle_speed=IDLE_SPEED, **cfg):
         mdp = _mdp(hum, lib, n, **cfg)
-        return evaluate_navigation(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), episodes)
+        return evaluate_navigation(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), episodes, idle_speed)
 
     # Targets 5-10 m away are never reached by a character holding its pose.
     far = run(3, early_termination=False, **SHORT)
@@ -243,12 +243,22 @@ def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
     assert 4 <= len(speeds) <= 2 * 30 and (speeds >= 0).all()
     assert near["goal_speed_mean"] == pytest.approx(speeds.mean()) and near["goal_speed_median"] == np.median(speeds)
     assert near["mean_reward"] > far["mean_reward"]
-    # The idle phase's bodies: every stay at a target of at least MIN_IDLE_SECONDS, within one episode.
+    # The idle phase's bodies: every stay at a target of at least MIN_IDLE_SECONDS, within one
+    # episode, slower than the idling speed (with none, the walking start's drift counts too).
     assert far["idle_bodies"] == []
-    idle = near["idle_bodies"]
+    every = run(2, idle_speed=np.inf, min_distance=0.0, max_distance=0.05, early_termination=False, **SHORT)
+    idle = every["idle_bodies"]
     lengths = [len(b) for b in idle]
     assert idle and min(lengths) >= round(MIN_IDLE_SECONDS * 30) and sum(lengths) <= len(speeds)
     assert all(b.shape[1:] == (hum.model.nbody - 1, 3) and np.isfinite(b).all() for b in idle)
+
+    def drift(b):  # m/s, the root's planar speed over a stay
+        return np.linalg.norm(b[-1, 0, :2] - b[0, 0, :2]) / ((len(b) - 1) / 30)
+
+    assert max(drift(b) for b in idle) > IDLE_SPEED  # walking through the circle is there without the test
+    slow = near["idle_bodies"]
+    assert sum(len(b) for b in slow) <= (speeds < IDLE_SPEED).sum() < sum(lengths)
+    assert all(drift(b) <= IDLE_SPEED + 0.05 for b in slow)
     # A head "below" 3 m is a fall on every second step: one fall per episode, its target missed.
     fall = run(3, fall_height=3.0, **SHORT)
     assert fall["falls_per_episode"] == 1.0 and fall["targets"] == 3 and fall["reached_share"] == 0.0

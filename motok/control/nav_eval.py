@@ -15,6 +15,9 @@ from motok.control.tasks.navigation import NavigationTask
 from motok.errors import UserError
 
 MIN_IDLE_SECONDS = 0.5  # a stay at the target shorter than this is passing through, not idling
+# Nor is walking through the 1 m circle (0.7 s at 1.4 m/s): idling is at most this root speed, m/s,
+# under half the data's slowest walking pace (median 1.06 m/s for the turns of set 2).
+IDLE_SPEED = 0.5
 
 
 def episode_quota(episodes: int, num_envs: int) -> np.ndarray:
@@ -39,7 +42,8 @@ def stays(mask: np.ndarray, episode: np.ndarray, min_steps: int) -> list[tuple[i
     return out
 
 
-def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], episodes: int) -> dict:
+def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], episodes: int,
+                        idle_speed: float = IDLE_SPEED) -> dict:
     """Run ``act(obs, goal) -> actions`` (numpy, all environments at once) on ``mdp`` from fresh
     episodes until ``episodes`` have ended; the task's generator draws the starts and targets.
 
@@ -54,8 +58,8 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     (``1 - closest / start``: 1 at the target, 0 for no step toward it; the paper's reached share
     is 0 for a policy that walks toward a 5-10 m target at the rewarded 1 m/s, which this tells
     from one that stands); and ``idle_bodies``: the body positions
-    ``(T, J, 3)`` (MuJoCo frame, control rate) of every stay within the radius of at least
-    :data:`MIN_IDLE_SECONDS`, for the idle phase's motion matching."""
+    ``(T, J, 3)`` (MuJoCo frame, control rate) of every stay within the radius, slower than
+    ``idle_speed`` (m/s), of at least :data:`MIN_IDLE_SECONDS`, for the idle phase's motion matching."""
     if not isinstance(mdp.task, NavigationTask):
         raise UserError(f"evaluate_navigation needs a TaskEnv around a NavigationTask, got {type(mdp.task).__name__}")
     if int(episodes) < 1:
@@ -65,8 +69,8 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     done = np.zeros(mdp.num_envs, dtype=np.int64)
     targets = reached = falls = diverged = steps = 0
     reward, times, speeds, starts, closests = 0.0, [], [], [], []
-    # Per step: who is at its target, in which of its episodes, and the bodies of those at it.
-    at_goal, episode, bodies = [], [], []
+    # Per step: who idles at its target, in which of its episodes, and the bodies of those idling.
+    idling, episode, bodies = [], [], []
     obs, goal = mdp.reset()
 
     def to_target():
@@ -78,9 +82,10 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
         obs, goal, rewards, term, trunc, info = mdp.step(act(obs, goal))
         live = done < quota  # this step belongs to an episode that counts
         closest = np.fmin(closest, info["distance"])  # a diverged step (NaN) does not erase the approach
-        at_goal.append(info["reached"] & live)
+        at_goal = info["reached"] & live
+        idling.append(at_goal & (info["root_speed"] < idle_speed))
         episode.append(done.copy())
-        bodies.append(mdp.env.bodies.pos[at_goal[-1]].astype(np.float32))
+        bodies.append(mdp.env.bodies.pos[idling[-1]].astype(np.float32))
         ends = info["target_ends"] & live
         targets += int(ends.sum())
         hit = ends & info["target_reached"]
@@ -88,7 +93,7 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
         times.append(info["time_to_reach"][hit])
         starts.append(start[ends])
         closests.append(closest[ends])
-        speeds.append(info["root_speed"][at_goal[-1]])
+        speeds.append(info["root_speed"][at_goal])
         falls += int((info["fell"] & term & live).sum())
         diverged += int((info["diverged"] & live).sum())
         reward += float(rewards[key][live].sum())
@@ -104,7 +109,7 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     times, speeds = np.concatenate(times), np.concatenate(speeds)
     starts, closests = np.concatenate(starts), np.concatenate(closests)
     min_steps = max(3, int(round(MIN_IDLE_SECONDS / mdp.dt)))
-    mask = np.stack(at_goal)
+    mask = np.stack(idling)
     row = np.full(mask.shape, -1)
     row[mask] = np.arange(int(mask.sum()))  # row-major, as the per-step rows were appended
     pos = np.concatenate(bodies)

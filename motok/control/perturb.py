@@ -7,9 +7,12 @@ while a policy does its task, a ball (10 cm radius, 4.2 kg) is thrown at the cha
   :func:`motok.sim.balls.detect_hits`);
 * **falls**: the head going below ``fall_height`` (0.5 m), counted once per fall;
 * **recoveries**: hits after which the head is above ``fall_height`` ``recovery_seconds`` (3 s)
-  later, whether it stayed up or got back up (the paper's "recovered"; a hit whose episode is
-  *terminated* within the window, by a fall or a failure, is not recovered, and one whose episode
-  is *truncated* or whose run ends within it is **censored**: neither);
+  later (the paper's "recovered"; with a task whose fall ends the episode, as navigation's, that
+  is "not fallen within 3 s": a fallen character cannot get up again). A hit whose episode is
+  *terminated* within the window, by a fall or a failure, is not recovered. A hit less than 3 s
+  before the episode's time limit (the task's ``limit`` or ``max_steps``) is **censored**,
+  whatever follows it: only its falls could be seen, so counting them would bias the rate low;
+  so is one whose run ends within the window;
 * the task's own measures: episodes ended by truncation rather than termination (``success``,
   motok's usual meaning), the main reward per step, and for tasks that report
   ``target_ends``/``target_reached`` (navigation) the share of targets reached, counted as
@@ -64,6 +67,15 @@ class PerturbConfig:
     @property
     def pool(self) -> int:
         return int(self.pool_size or math.ceil(self.flight_seconds / self.period - 1e-9) + 1)
+
+
+def time_limit(task, n: int) -> np.ndarray:
+    """``(n,)`` each environment's episode length in control steps: the task's ``limit`` (per
+    environment, set at its reset) or ``max_steps``; unbounded for a task with neither."""
+    lim = getattr(task, "limit", getattr(task, "max_steps", None))
+    if lim is None:
+        return np.full(n, np.iinfo(np.int64).max)
+    return np.broadcast_to(np.asarray(lim, dtype=np.int64), (n,))
 
 
 def _quota(episodes: int, n: int) -> np.ndarray:
@@ -186,8 +198,10 @@ def perturb(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], e
                           cfg.min_dv, cfg.contact_slack) & (held >= 0) & ~touched & live[:, None]
         touched |= hit
         e, k = np.nonzero(hit)
-        win.open(e, held[e, k], clock[e])
+        fits = clock[e] + window <= time_limit(mdp.task, N)[e]
+        win.open(e[fits], held[e[fits], k[fits]], clock[e[fits]])
         c["hits"] += len(e)
+        c["censored"] += int((~fits).sum())
         down = env.bodies.pos[:, head, 2] < cfg.fall_height
         c["falls"] += int((down & ~fallen & live).sum())
         fallen = down

@@ -29,10 +29,10 @@
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
 # On a fresh machine, the shortest chains first: text to physics (issue 17) needs only the hybrid
-# prior, the tasks (issue 16) the continuous one too; then the rest (three more priors, Table 1,
-# the navigation comparison):
+# prior, the tasks (issue 16) the continuous and discrete+ ones too; then the rest (two more
+# priors, Table 1):
 #   PRIORS=hybrid TABLE1=0 scripts/physics_results.sh data expert priors t2p
-#   PRIORS="hybrid continuous" TABLE1=0 scripts/physics_results.sh priors tasks taskeval
+#   PRIORS="hybrid continuous discrete+" TABLE1=0 scripts/physics_results.sh priors nav tasks taskeval
 #   scripts/physics_results.sh
 #
 # Settings (environment): PRIORS (some of: hybrid continuous discrete+ discrete hybrid-vq; unset: all)

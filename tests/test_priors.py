@@ -186,10 +186,14 @@ def test_weight_schedules_ramp_linearly_then_hold():
 
 
 def test_prior_recipes_load():
+    margin = {}  # per quantized kind: a minibatch's rows per code over the reset threshold
     for path in sorted(RECIPES.glob("prior_*.yaml")):
         cfg = load_config(DistillConfig, path)
         kind = path.stem[len("prior_"):]
         assert cfg.action.base == "current"
+        if kind in ("discrete", "hybrid-vq", "discrete+", "hybrid"):
+            codes = cfg.prior.vq_codebook_size if kind in ("discrete", "hybrid-vq") else cfg.prior.codebook_size
+            margin[kind] = cfg.minibatch_size / codes / cfg.prior.reset_threshold
         if kind == "paper":
             assert cfg.prior.kind == "" and cfg.prior.codebook_size == 1024 and cfg.prior.vq_codebook_size == 8192
             m = LatentPrior(replace(cfg.prior, kind="hybrid"), 102, 315, 37)
@@ -198,6 +202,10 @@ def test_prior_recipes_load():
             assert cfg.prior.kind == kind, path
             LatentPrior(cfg.prior, 102, 315, 37)
     assert {p.stem for p in RECIPES.glob("prior_*.yaml")} == {f"prior_{k}" for k in (*KINDS, "paper")}
+    # A single book and a residual book are compared on equal terms: every code of either sees as
+    # many rows per update, relative to the usage below which it is reset (else the single book
+    # would be replaced rather than learned)
+    assert len(set(margin.values())) == 1 and len(margin) == 4, margin
 
 
 # ---------------------------------------------------------------------- labels and distillation

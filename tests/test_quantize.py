@@ -246,6 +246,24 @@ def test_kmeans_init_runs_lloyd_once_on_the_first_training_batch():
     assert torch.equal(q.embed.detach(), book)  # not re-initialised
 
 
+def test_a_kmeans_start_survives_the_first_reset_check():
+    """The EMA counts of a k-means start are the cluster sizes: with a reset threshold of 2 (the
+    priors'), counts of 1 would mark every code dead at the first update and replace the
+    clustering with random rows of the batch."""
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    x = centres.repeat_interleave(50, 0) + torch.randn(200, 2, generator=torch.Generator().manual_seed(6))
+    q = make("ema_reset", K=4, D=2, kmeans_init=True, reset_threshold=2.0).train()
+    out = q(x.t()[None])
+    assert out.stats["dead"] == [0]  # no code reset
+    book = q.embed.detach()
+    idx = torch.cdist(x, book).argmin(1)
+    sizes = torch.bincount(idx, minlength=4).float()
+    # the start's counts were the cluster sizes; the update of a fixed point leaves them so
+    assert (sizes >= 2).all() and torch.allclose(q.ema_count, sizes)
+    for k in range(4):  # and the codes the clusters' means: Lloyd's result, not random rows
+        assert torch.allclose(book[k], x[idx == k].mean(0), atol=1e-4)
+
+
 def far_batch(n=64, D=8, seed=13):
     """(1, D, n) encoder outputs around 5, far outside the uniform start's [-1/K, 1/K]."""
     return (5 + torch.randn(n, D, generator=torch.Generator().manual_seed(seed))).t()[None]

@@ -161,7 +161,9 @@ class VectorQuantizer(Quantizer):
     @torch.no_grad()
     def _data_init(self, x: Tensor, g: torch.Generator) -> None:
         """Codes from the first training batch ``x`` (every rank's rows), then EMA counts 1 and
-        sums equal to the codes, as T2M-GPT's ``init_codebook``.
+        sums equal to the codes, as T2M-GPT's ``init_codebook`` (``kmeans``: counts the cluster
+        sizes, as vector-quantize-pytorch's k-means start; with counts 1 every code would fall
+        under a reset threshold above 1 at the first update, and the clustering would be lost).
 
         - ``batch``: K rows of the batch. T2M-GPT takes the first K rows of its shuffled batch;
           here K rows are drawn without replacement from all ranks' rows, so ranks agree. A
@@ -186,12 +188,17 @@ class VectorQuantizer(Quantizer):
                 packed = all_reduce_sum(torch.cat([one_hot.sum(0)[:, None], one_hot.t() @ x], 1))
                 n, s = packed[:, :1], packed[:, 1:]
                 c = torch.where(n > 0, s / n.clamp(min=1), c)  # empty clusters keep their centre
+            count = all_reduce_sum(F.one_hot(nearest_code(x, c), K).float().sum(0))  # of the final centres
         elif len(c.unique(dim=0)) < K:  # c is identical on every rank, so is this decision
             c = c + torch.randn(c.shape, generator=g).to(c) * (0.01 / self.dim ** 0.5)
         self.embed.data.copy_(c)
         if self.uses_ema:
-            self.ema_sum.copy_(c)
-            self.ema_count.fill_(1.0)
+            if self.init_method == "kmeans":
+                self.ema_count.copy_(count)
+                self.ema_sum.copy_(c * count[:, None])
+            else:
+                self.ema_sum.copy_(c)
+                self.ema_count.fill_(1.0)
         self.initted.fill_(1)
 
     def lookup(self, idx: Tensor) -> Tensor:

@@ -188,7 +188,8 @@ class VectorQuantizer(Quantizer):
                 packed = all_reduce_sum(torch.cat([one_hot.sum(0)[:, None], one_hot.t() @ x], 1))
                 n, s = packed[:, :1], packed[:, 1:]
                 c = torch.where(n > 0, s / n.clamp(min=1), c)  # empty clusters keep their centre
-            count = all_reduce_sum(F.one_hot(nearest_code(x, c), K).float().sum(0))  # of the final centres
+            # the final centres' cluster sizes; an empty cluster counts 1, as a batch start's codes
+            count = all_reduce_sum(F.one_hot(nearest_code(x, c), K).float().sum(0)).clamp(min=1.0)
         elif len(c.unique(dim=0)) < K:  # c is identical on every rank, so is this decision
             c = c + torch.randn(c.shape, generator=g).to(c) * (0.01 / self.dim ** 0.5)
         self.embed.data.copy_(c)

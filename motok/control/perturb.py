@@ -32,6 +32,7 @@ from typing import Callable
 
 import numpy as np
 
+from motok.control.nav_eval import episode_quota
 from motok.control.tasks.base import TaskEnv
 from motok.errors import UserError
 from motok.sim.balls import ball_states, detect_hits, find_balls, humanoid_capsules, launch_balls, park_balls, set_balls
@@ -76,11 +77,6 @@ def time_limit(task, n: int) -> np.ndarray:
     if lim is None:
         return np.full(n, np.iinfo(np.int64).max)
     return np.broadcast_to(np.asarray(lim, dtype=np.int64), (n,))
-
-
-def _quota(episodes: int, n: int) -> np.ndarray:
-    """Episodes each environment contributes: a fixed share, so short (fallen) episodes are not over-counted."""
-    return episodes // n + (np.arange(n) < episodes % n)
 
 
 @dataclass
@@ -147,7 +143,7 @@ def perturb(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], e
     # Pending recovery windows, one per launch, in a ring: launch L's hit resolves at most
     # K * every + window steps after it, before launch L + R reuses its entry.
     R = (K * every + window) // every + 2
-    quota, done = _quota(int(episodes), N), np.zeros(N, dtype=np.int64)
+    quota, done = episode_quota(int(episodes), N), np.zeros(N, dtype=np.int64)
     clock, launches = np.zeros(N, dtype=np.int64), np.zeros(N, dtype=np.int64)
     held = np.full((N, K), -1, dtype=np.int64)  # the launch each ball slot holds (-1: parked)
     touched = np.zeros((N, K), dtype=bool)  # that launch has hit already

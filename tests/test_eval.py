@@ -269,6 +269,37 @@ def test_t2m_rows_json_and_markdown(tiny_evaluator, labelled_dataset, tmp_path):
     json.dumps(rep)
 
 
+def test_motions_rows_keep_the_split_and_samples_without_one(tiny_evaluator, labelled_dataset, tmp_path):
+    """A tracked dataset keeps its clips' splits: a --motions row scores only the report's split
+    (and says how many it left out); GPT samples carry no split and all stay."""
+    from motok.artifacts import Provenance
+    from motok.data.dataset import MotionFile, write_motion
+    from motok.eval.evaluator import EvaluatorError
+    from motok.eval.report import T2MConfig, markdown, t2m
+    from motok.eval.sets import motion_set
+    with MotionFile(labelled_dataset) as mf:
+        captioned = [i for i in range(len(mf)) if mf.captions(i)]
+        n_test = sum(mf.splits[i] == "test" for i in captioned)
+        train = [mf.clip(i) for i in captioned if mf.splits[i] == "train"][:6]
+        loose = [mf.clip(i) for i in captioned if mf.splits[i] == "train"][:6]
+        for c in loose:
+            c.split = ""
+        write_motion(tmp_path / "train.h5", "motion", Provenance("pytest", {}), train, mf.skeleton, mf.offsets,
+                     mf.fps, False)
+        write_motion(tmp_path / "loose.h5", "motion", Provenance("pytest", {}), loose, mf.skeleton, mf.offsets,
+                     mf.fps, False)
+    rep = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=2, physical=False),
+              motions=[labelled_dataset], real=False)
+    (row,) = rep["rows"]
+    assert row["motions"] == n_test and row["other_split_left_out"] == len(captioned) - n_test > 0
+    assert f"{len(captioned) - n_test} clip(s) of other splits than test left out" in markdown(rep)
+    assert len(motion_set(tmp_path / "loose.h5", split="test").clips) == 6
+    assert "other_split_left_out" not in motion_set(tmp_path / "loose.h5", split="test").extra
+    assert len(motion_set(tmp_path / "train.h5").clips) == 6  # no split asked: everything
+    with pytest.raises(EvaluatorError, match=r"train\.h5: none of its 6 captioned clips is in split 'test'"):
+        motion_set(tmp_path / "train.h5", split="test")
+
+
 def _wrongly_captioned(src: Path, out: Path) -> Path:
     """The test clips unchanged, each carrying the captions of a clip of another label."""
     from motok.artifacts import Provenance

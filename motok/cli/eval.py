@@ -45,7 +45,8 @@ def _t2m_command(
     motions: list[Path] = typer.Option([], "--motions", metavar="PATH",
                                        help="Add a row for any motion artifact (repeatable).", callback=existing),
     gt_length: bool = typer.Option(False, "--gt-length", help="Generate at the ground-truth length, not until End."),
-    split: Optional[str] = typer.Option(None, "--split", help="Split of --data (default test)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Split of --data (default test); --motions rows keep "
+                                         "their clips of it and those without a split (GPT samples)."),
     repeats: Optional[int] = typer.Option(None, "--repeats", help="Repeats (default 20)."),
     captions: Optional[str] = typer.Option(None, "--captions", metavar="all|unseen",
                                            help="unseen: only the captions that do not occur word for word in "

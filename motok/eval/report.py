@@ -61,7 +61,7 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
         rows.append(recon_set(ref, Path(tokenizer), info["num_joints"]))
     if gpt is not None:
         rows.append(generated_set(Path(gpt), tokenizer, ref, cfg, save_generated))
-    rows += [motion_set(Path(p)) for p in motions]
+    rows += [motion_set(Path(p), split=cfg.split) for p in motions]
     if cfg.captions == "unseen":  # generated rows already use only ref's captions; --motions rows do not
         rows = [r if r is ref else unseen_only(r, seen) for r in rows]
     if not rows:
@@ -133,6 +133,9 @@ def markdown(report: dict) -> str:
         lines.append(f"Label-reader ceiling (batches of {ceil['batch']}): R@1 {ceil['R@1']:.3f}, "
                      f"R@3 {ceil.get('R@3', float('nan')):.3f}.")
     for r in report["rows"]:
+        if r.get("other_split_left_out"):
+            lines.append(f"{r['name']}: {r['other_split_left_out']} clip(s) of other splits than {report['split']} "
+                         f"left out.")
         if r.get("text_side"):
             lines.append(f"{r['name']}: the GPT reads text with `{r['gpt_text_encoder']}`, the evaluator with "
                          f"`{report['text_encoder']}` ({r['text_side']} text side).")

@@ -84,14 +84,26 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
                             "tokenizer_sha256": meta["model_sha256"]})
 
 
-def motion_set(path: Path, name: str | None = None) -> MotionSet:
+def motion_set(path: Path, name: str | None = None, split: str | None = None) -> MotionSet:
     """Any ``motion`` artifact. Clips labelled ``role: mm`` (or, without roles, several ``sample``
-    labels per caption) feed MModality; ``sample`` labels spread the others over the repeats."""
+    labels per caption) feed MModality; ``sample`` labels spread the others over the repeats.
+
+    With ``split``, clips that carry another split are left out (a tracked dataset keeps its
+    clips' splits); clips without one (GPT samples) stay. How many were left out is in ``extra``."""
     with MotionFile(path) as mf:
         sd = load_split(mf, None)
         if not sd.clips:
             raise EvaluatorError(f"{path}: no clip has a caption; the t2m metrics need the text of every motion")
         idx = [mf.index(n) for n in sd.names]
+        other = [k for k, i in enumerate(idx) if split and mf.splits[i] not in ("", split)]
+        if other:
+            if len(other) == len(idx):
+                raise EvaluatorError(f"{path}: none of its {len(idx)} captioned clips is in split {split!r} "
+                                     f"(its splits: {sorted(set(mf.splits[i] for i in idx))})")
+            drop = set(other)
+            keep = [k for k in range(len(idx)) if k not in drop]
+            sd = type(sd)(*[[col[k] for k in keep] for col in (sd.clips, sd.captions, sd.labels, sd.names)])
+            idx = [idx[k] for k in keep]
         joints = [mf.frames("joints", i) for i in idx]
         J = mf.skeleton.num_joints
     labels = [json.loads(x) if x else {} for x in sd.labels]
@@ -109,4 +121,5 @@ def motion_set(path: Path, name: str | None = None) -> MotionSet:
     return MotionSet(name or Path(path).stem, [sd.clips[k] for k in main], [sd.captions[k] for k in main],
                      sample=sample, mm_groups=[g for _, g in multi], mm_texts=[t for t, _ in multi],
                      mm_clips=[sd.clips[k] for k in mm], joints=[joints[k] for k in main],
-                     extra={"num_joints": J, "motions_file": str(path)})
+                     extra={"num_joints": J, "motions_file": str(path),
+                            **({"other_split_left_out": len(other)} if other else {})})

@@ -107,6 +107,11 @@ def test_multimodality_on_hand_made_vectors():
     assert M.multimodality([line], rng, pairs=10) == pytest.approx(2.0)
     with pytest.raises(ValueError):
         M.multimodality([np.zeros((1, 2))], rng)
+    # A bootstrap over captions: each draw averages a resampled set of groups, values 0, 2.5 or 5,
+    # about 2.5 on average; without it the pairs are all there is and every draw gives 2.5.
+    draws = [M.multimodality(groups, rng, pairs=10, resample_captions=True) for _ in range(400)]
+    assert set(np.round(draws, 9)) == {0.0, 2.5, 5.0} and np.mean(draws) == pytest.approx(2.5, abs=0.2)
+    assert np.std(draws) == pytest.approx(np.sqrt(2 * 2.5 ** 2 / 4), abs=0.3)  # two groups, 5 and 0
 
 
 def test_mean_and_95_ci():

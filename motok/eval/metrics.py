@@ -155,14 +155,22 @@ def diversity(x: np.ndarray, rng: np.random.Generator, times: int = DIVERSITY_TI
     return float(np.linalg.norm(x[a] - x[b], axis=1).mean())
 
 
-def multimodality(groups: list[np.ndarray], rng: np.random.Generator, pairs: int = MM_PAIRS) -> float:
+def multimodality(groups: list[np.ndarray], rng: np.random.Generator, pairs: int = MM_PAIRS,
+                  resample_captions: bool = False) -> float:
     """Mean distance between ``pairs`` pairs of samples within each caption's group.
 
     ``groups``: one ``(k_i, d)`` array per caption, ``k_i >= 2`` samples generated for it. Pairs
     are two distinct samples (the reference code draws both ends independently and can pair a
     sample with itself, which biases the value down by about 1/k); with ``k_i`` samples a group
     gives ``min(pairs, k_i (k_i - 1) / 2)`` distinct pairs.
+
+    ``resample_captions``: the groups are drawn with replacement first (a bootstrap over
+    captions). The reference draws new captions and new samples in every repeat; samples made once
+    and re-paired would give a confidence interval of the pair draw alone, too narrow by the
+    spread between captions.
     """
+    if resample_captions:
+        groups = [groups[i] for i in rng.integers(len(groups), size=len(groups))]
     dists = []
     for g in groups:
         g = np.asarray(g, np.float64)

@@ -32,6 +32,9 @@ class T2MConfig:
     top_k: int = 3
     diversity_times: int = 300
     mm_pairs: int = 10  # MModality pairs per caption (reference: 10 of 30 samples)
+    # MModality's captions drawn with replacement in each repeat: samples are generated once, not
+    # per repeat as the reference does, so the CI must carry the spread between captions.
+    mm_resample: bool = True
     unit_crop: bool = True  # the reference loader's crop to a multiple of 4 frames
     seed: int = 0
     physical: bool = True
@@ -108,7 +111,8 @@ def evaluate_rows(ev: LoadedEvaluator, ref: MotionSet, rows: list[MotionSet], cf
                              "Diversity": M.diversity(m, rrng, cfg.diversity_times)})
                 if row.mm_groups:
                     g = emb(f"row{k}/mm", row.mm_clips, list(range(len(row.mm_clips))), rrng, cfg.unit_crop)
-                    vals["MModality"] = M.multimodality([g[ix] for ix in row.mm_groups], rrng, cfg.mm_pairs)
+                    vals["MModality"] = M.multimodality([g[ix] for ix in row.mm_groups], rrng, cfg.mm_pairs,
+                                                        resample_captions=cfg.mm_resample)
                 for name, v in vals.items():
                     per_row[k].setdefault(name, []).append(v)
                 bar.advance(task)

@@ -58,7 +58,10 @@ def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, smal
             n = min(s.num_frames, g.num_frames)
             err = float(mpjpe(s.joints[:n], g.joints[:n]).mean())
             assert 0.5 * r["mpjpe_mm"] < err < 1.5 * r["mpjpe_mm"] + 10.0, (err, r["mpjpe_mm"])
-            assert abs(r["floor_shift_m"]) < 0.05  # dataset motion already stands on the floor
+            # dataset motion already stands on the floor of the feature pipeline: not lifted (the
+            # humanoid's feet reach into the floor there, and a lifted reference is not what the
+            # controllers were trained on)
+            assert abs(r["floor_shift_m"]) < 1e-3
     # the results beside the motion, for tables made later (strict JSON, the same numbers)
     saved = json.loads(report_path(out).read_text(), parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
     assert report_path(out).name == "tracked.track.json" and saved["kind"] == "control-track"
@@ -119,14 +122,15 @@ def test_floating_motion_is_placed_on_the_floor_and_short_clips_fail_alone(pd_co
     write_motion(src, "motion", Provenance(command="test", config={}), [up, tiny, b], skeleton, offsets, fps, False)
     res = track(pd_controller, src, tmp_path / "out.h5")
     per = res["per_clip"]
-    assert per["floating"]["floor_shift_m"] == pytest.approx(-1.0, abs=0.03)
+    assert per["floating"]["floor_shift_m"] == pytest.approx(-1.0, abs=1e-3)
     assert "too short" in per["tiny"]["error"] and res["written"] == 2 and not per["tiny"]["tracked_to_end"]
     base = track(pd_controller, small_dataset, tmp_path / "ref.h5", clips="dataset-2_walk_normal_001")
     assert per["floating"]["seconds"] == pytest.approx(base["per_clip"]["dataset-2_walk_normal_001"]["seconds"], abs=0.1)
     with MotionFile(tmp_path / "out.h5", "motion") as mf:
         assert list(mf.names) == ["floating", "dataset-2_walk_normal_002"]
     placed, shift = place_on_floor(lib)
-    assert np.allclose([placed.lowest[s:e].min() for s, e in zip(placed.starts[:-1], placed.starts[1:])], 0.002)
+    assert np.allclose([placed.joints[s:e, :, 2].min() for s, e in zip(placed.starts[:-1], placed.starts[1:])], 0.0)
+    assert np.abs(shift).max() < 1e-3  # the dataset's own clips: on the floor already
     assert np.allclose(placed.qpos[:, 2] - lib.qpos[:, 2], np.repeat(shift, lib.lengths))
     with pytest.raises(ValueError, match="no clip is long enough"):
         write_motion(tmp_path / "t.h5", "motion", Provenance(command="test", config={}), [tiny], skeleton, offsets, fps, False)

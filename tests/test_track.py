@@ -67,6 +67,11 @@ def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, smal
     assert report_path(out).name == "tracked.track.json" and saved["kind"] == "control-track"
     assert saved["per_clip"] == res["per_clip"] and saved["tracked_to_end"] == res["tracked_to_end"]
     assert saved["provenance"]["config"]["clips"] == "dataset-2_walk_normal_00[1-3]"
+    # sole slip of the simulated feet and of the reference over the same states (motok.sim.soles):
+    # the reference's walks mostly plant their soles, whatever the plain PD controller does
+    slip = saved["sole_slip"]
+    assert set(slip) == {"simulated", "reference"} and 0 < slip["reference"]["sole_contact_fraction"] < 1
+    assert slip["reference"]["sole_slip_ratio"] < 0.5 and "sole_slip_cm_s" in r
     from motok.cli.main import app
 
     runner = CliRunner()

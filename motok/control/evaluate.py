@@ -19,6 +19,7 @@ from motok.eval.metrics import acceleration_error, mpjpe, velocity_error
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
 from motok.sim.reference import ReferenceLibrary
+from motok.sim.soles import SlipSums, Soles, reference_corners, slip_sums
 
 ERRORS = ("mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm")
 
@@ -42,10 +43,11 @@ def policy_device(policy):
 
 
 def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfig, action: ActionConfig,
-         keep_qpos: bool = False) -> dict:
+         keep_qpos: bool = False, sole: Soles | None = None) -> dict:
     """One batch of clips ``ids`` from frame 0 until each ends or fails: simulated and reference body
-    positions ``(N, T + 1, J, 3)`` with the ``alive`` mask of the frames each clip played, and the
-    first environment's qpos when ``keep_qpos``."""
+    positions ``(N, T + 1, J, 3)`` with the ``alive`` mask of the frames each clip played, the
+    first environment's qpos when ``keep_qpos``, and with ``sole`` the simulated and reference sole
+    corners ``(N, T + 1, K, 3)`` (``sole_sim``, ``sole_ref``; ``motok.sim.soles``)."""
     N = len(ids)
     # Host arrays whatever the training used (an evaluation is not the hot path); the policy stays where it is.
     env = HumanoidEnv(hum, replace(sim, num_envs=N, on_device=False))
@@ -55,6 +57,14 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
     mdp = TaskEnv(env, it, partial(pd_targets, action))
     obs, goal = mdp.reset(clips=ids, frames=0)
     pos, ref, qpos = [env.bodies.pos.copy()], [lib.body_pos[lib.starts[ids]]], [env.qpos[0].copy()]
+    corners = []
+
+    def keep_corners(frames):
+        if sole is not None:
+            corners.append((sole.world(env.bodies.pos, env.bodies.rot).astype(np.float32),
+                            reference_corners(sole, lib.body_pos[frames], lib.body_quat[frames]).astype(np.float32)))
+
+    keep_corners(lib.starts[ids])
     alive, played = [np.ones(N, bool)], np.zeros(N, dtype=np.int64)
     active, success = np.ones(N, bool), np.zeros(N, bool)
     worst = np.zeros(N)  # largest single-body error over the frames played
@@ -62,7 +72,9 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
         _, a, _, _ = ac.act(as_tensor(np.concatenate([obs, goal], 1)).to(device), deterministic=True)
         obs, goal, _, term, trunc, info = mdp.step(a.cpu().numpy())
         worst = np.where(active, np.maximum(worst, info["max_body_error"]), worst)
-        pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[lib.frame_index(it.clip, it.frame)])
+        frames = lib.frame_index(it.clip, it.frame)
+        pos.append(env.bodies.pos.copy()), ref.append(lib.body_pos[frames])
+        keep_corners(frames)
         # A diverged simulation was put back to a default pose: that frame was never played.
         alive.append(active & ~np.asarray(info["diverged"], bool))
         if keep_qpos:
@@ -70,8 +82,23 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
         played += active
         success |= active & trunc
         active &= ~(term | trunc)
-    return {"pos": np.stack(pos, 1), "ref": np.stack(ref, 1), "alive": np.stack(alive, 1), "played": played,
-            "success": success, "worst": worst, "qpos": np.stack(qpos), "dt": env.dt}
+    out = {"pos": np.stack(pos, 1), "ref": np.stack(ref, 1), "alive": np.stack(alive, 1), "played": played,
+           "success": success, "worst": worst, "qpos": np.stack(qpos), "dt": env.dt}
+    if sole is not None:
+        out["sole_sim"], out["sole_ref"] = (np.stack([c[k] for c in corners], 1) for k in (0, 1))
+    return out
+
+
+def clip_slip(out: dict, k: int) -> tuple[SlipSums, SlipSums]:
+    """Sole slip sums (simulated, reference) of environment ``k`` of a :func:`play` with ``sole``,
+    over the states it played."""
+    alive = out["alive"][k]
+    return tuple(slip_sums(out[key][k], out["dt"], alive) for key in ("sole_sim", "sole_ref"))
+
+
+def slip_report(sim: SlipSums, ref: SlipSums) -> dict:
+    """Overall sole slip of the simulated bodies and of their reference over the same states."""
+    return {"simulated": sim.result(), "reference": ref.result()}
 
 
 def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConfig, task: ImitationTaskConfig,

@@ -22,6 +22,10 @@ docs/sim.md), taken back to the data frame (Y up), resampled from the control ra
 motion's frame rate, and put through the feature pipeline (``extract_features``: the uniform
 skeleton of the input, floor, facing +Z), so features, joints, local rotations and root
 translation all describe the simulated motion. A clip that fails keeps the part played.
+
+**Sole slip.** Beside MPJPE, each clip's report has the sole slip of the simulated feet and of the
+reference over the same states (``motok.sim.soles``), the artefact the simulation is meant to
+remove; the joints' skating measure cannot see it on a foot that rocks on its sole.
 """
 
 from __future__ import annotations
@@ -34,13 +38,14 @@ import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
-from motok.control.evaluate import play
+from motok.control.evaluate import clip_slip, play, slip_report
 from motok.data.dataset import Clip, MotionFile, write_motion
 from motok.errors import UserError
 from motok.eval.metrics import mpjpe
 from motok.features.humanml3d import extract_features
 from motok.features.resample import resample_positions
 from motok.sim.reference import ReferenceLibrary, load_library
+from motok.sim.soles import SlipSums, soles
 
 MIN_FRAMES = 4  # frames a clip needs at the control rate: a step with one frame of goal ahead, and features
 
@@ -119,6 +124,7 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
     order = kept[:1] + sorted(kept[1:], key=lambda n: -lengths[n])
     task = replace(cfg.task, max_episode_seconds=1e9)
     per, written, video = {}, [], None
+    sole, slip_sim, slip_ref = soles(hum), SlipSums(), SlipSums()
     with MotionFile(motion) as mf:
         for c0 in range(0, len(order), chunk):
             lib, shift = place_on_floor(load_library(hum, motion, control_hz=hz, clips=order[c0:c0 + chunk],
@@ -126,7 +132,7 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
             for start in range(0, len(lib), batch):
                 ids = np.arange(start, min(start + batch, len(lib)))
                 first = render is not None and c0 == 0 and start == 0
-                res = play(hum, ac, lib, ids, cfg.env, task, cfg.action, keep_qpos=first)
+                res = play(hum, ac, lib, ids, cfg.env, task, cfg.action, keep_qpos=first, sole=sole)
                 if first:
                     played = int(res["played"][0])
                     video = (res["qpos"][:played + 1], lib.qpos[lib.starts[0]:lib.starts[0] + played + 1], lib.names[0])
@@ -138,6 +144,10 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
                                  "clip_seconds": float((lib.lengths[i] - 1 - task.goal_frames) / hz),
                                  "floor_shift_m": float(shift[i]), "mpjpe_mm": float(mpjpe(p, r).mean()),
                                  "g_mpjpe_mm": float(mpjpe(p, r, root_relative=False).mean())}
+                    s_sim, s_ref = clip_slip(res, k)
+                    slip_sim.add(s_sim), slip_ref.add(s_ref)
+                    per[name].update(sole_slip_cm_s=s_sim.result()["sole_slip_cm_s"],
+                                     reference_sole_slip_cm_s=s_ref.result()["sole_slip_cm_s"])
                     if len(p) * fps / hz >= 2:
                         ref = mf.clip(name)  # its split, labels and captions, so text metrics apply to the result
                         written.append(simulated_clip(name, p, hz, fps, skeleton, offsets, legacy, str(motion),
@@ -162,7 +172,8 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
     summary = {"output": str(out), "clips": len(names), "written": len(written),
                "tracked_to_end": float(np.mean([v["tracked_to_end"] for v in ordered.values()])),
                "mpjpe_mm": float(np.mean([v["mpjpe_mm"] for v in ok])) if ok else float("nan"),
-               "g_mpjpe_mm": float(np.mean([v["g_mpjpe_mm"] for v in ok])) if ok else float("nan")}
+               "g_mpjpe_mm": float(np.mean([v["g_mpjpe_mm"] for v in ok])) if ok else float("nan"),
+               "sole_slip": slip_report(slip_sim, slip_ref)}
     if render is not None and video is not None:
         from motok.sim.render import render_trajectory
         qpos, ghost, name = video

@@ -1,0 +1,107 @@
+"""How far the soles slide: the foot geometry's own skating, for simulated and reference bodies alike.
+
+The kinematic skating measure (``motok.eval.physical``) follows a joint, the toe, and counts it as
+in contact while it is within 1 cm of its resting height. A simulated foot that rocks on its sole
+keeps its toe joint a few centimetres up through the stance, so that measure sees little contact
+and cannot say whether the part of the foot that does touch the floor holds still. This one follows
+the material points that touch: the bottom corners of every box geom (the humanoid's feet and toes,
+``motok.sim.mjcf``). A corner is in contact while it is at most ``tolerance`` above the floor (at or
+below it counts too: reference poses reach into the floor); between two consecutive states where
+it is in contact at both, its slip is its horizontal displacement over the time step. A planted
+foot, or one rolling over an edge, moves its touching corners by nothing; a sliding one by its speed.
+
+Everything is computed on whole ``(N, T, J, .)`` arrays of body positions and rotations (no MuJoCo
+call, no loop over frames), from the bodies a rollout already has (``HumanoidEnv.bodies``) or a
+reference library holds (``body_pos``, ``body_quat``), so simulation and reference are measured by
+the same code at the same rate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from motok.rotations import quat_to_matrix
+
+BOX = 6  # mujoco.mjtGeom.mjGEOM_BOX
+TOLERANCE = 0.01  # m above the floor that still counts as touching (the kinematic measure's 1 cm)
+SLIP_SPEED = 0.05  # m/s: a corner step faster than this counts as sliding (the kinematic measure's threshold)
+
+
+@dataclass(frozen=True)
+class Soles:
+    """The bottom corners of the humanoid's box geoms: ``joint`` ``(K,)`` the skeleton index of each
+    corner's body and ``offset`` ``(K, 3)`` the corner in that body's frame."""
+
+    joint: np.ndarray
+    offset: np.ndarray
+
+    def world(self, pos: np.ndarray, rot: np.ndarray) -> np.ndarray:
+        """Corner positions ``(..., K, 3)`` from body positions ``(..., J, 3)`` and rotations
+        ``(..., J, 3, 3)`` (body to world)."""
+        return pos[..., self.joint, :] + np.einsum("...kij,kj->...ki", rot[..., self.joint, :, :], self.offset)
+
+
+def soles(hum) -> Soles:
+    """The four lowest corners (in the body frame's -z, MuJoCo's up) of each box geom of ``hum``."""
+    m = hum.model
+    skeleton_of = {int(b): j for j, b in enumerate(hum.body_ids)}
+    joints, offsets = [], []
+    for g in np.flatnonzero(m.geom_type == BOX):
+        body = int(m.geom_bodyid[g])
+        if body not in skeleton_of:
+            continue
+        sx, sy, sz = m.geom_size[g]
+        corners = np.array([[x, y, -sz] for x in (-sx, sx) for y in (-sy, sy)])
+        r = quat_to_matrix(np.asarray(m.geom_quat[g], np.float64))
+        offsets.append(m.geom_pos[g] + corners @ r.T)
+        joints += [skeleton_of[body]] * 4
+    if not joints:
+        raise ValueError("the humanoid has no box geoms: nothing to measure sole slip on")
+    return Soles(np.asarray(joints), np.concatenate(offsets))
+
+
+@dataclass
+class SlipSums:
+    """Additive sums over clips: corner steps in contact, their summed slip (m/s) and those above
+    :data:`SLIP_SPEED`, and the corner steps looked at."""
+
+    slip: float = 0.0
+    contact: int = 0
+    fast: int = 0
+    steps: int = 0
+
+    def add(self, other: "SlipSums") -> "SlipSums":
+        self.slip += other.slip
+        self.contact += other.contact
+        self.fast += other.fast
+        self.steps += other.steps
+        return self
+
+    def result(self) -> dict:
+        c = self.contact
+        return {"sole_slip_cm_s": 100 * self.slip / c if c else float("nan"),
+                "sole_slip_ratio": self.fast / c if c else float("nan"),
+                "sole_contact_fraction": c / self.steps if self.steps else float("nan")}
+
+
+def slip_sums(corners: np.ndarray, dt: float, valid: np.ndarray | None = None,
+              tolerance: float = TOLERANCE) -> SlipSums:
+    """Sums of one or many clips of corner positions ``(..., T, K, 3)`` (MuJoCo frame, z up) sampled
+    every ``dt`` seconds; ``valid`` ``(..., T)`` marks the states that belong to a clip (a step counts
+    when both its states do)."""
+    c = np.asarray(corners, np.float64)
+    touch = c[..., 2] <= tolerance  # (..., T, K)
+    pair = touch[..., :-1, :] & touch[..., 1:, :]
+    both = np.ones(c.shape[:-2], bool) if valid is None else np.asarray(valid, bool)
+    both = (both[..., :-1] & both[..., 1:])[..., None]
+    pair &= both
+    speed = np.linalg.norm(np.diff(c[..., :2], axis=-3), axis=-1) / dt
+    return SlipSums(slip=float(speed[pair].sum()), contact=int(pair.sum()), fast=int((speed[pair] > SLIP_SPEED).sum()),
+                    steps=int(np.broadcast_to(both, pair.shape).sum()))
+
+
+def reference_corners(sole: Soles, body_pos: np.ndarray, body_quat: np.ndarray) -> np.ndarray:
+    """Corners of reference frames from a library's ``body_pos`` and ``body_quat`` (w, x, y, z)."""
+    return sole.world(np.asarray(body_pos, np.float64), quat_to_matrix(np.asarray(body_quat, np.float64)))

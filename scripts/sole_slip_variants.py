@@ -1,0 +1,60 @@
+"""Sole slip of one controller under changes to its world, zero-shot (docs/results.md, issue 17).
+
+Each variant edits the loaded MuJoCo model in memory (the run's MJCF stays as it is) and tracks the
+same clips with ``motok.control.track``; a row per variant: tracked to the end, MPJPE, and the sole
+slip of the simulated and reference feet (``motok.sim.soles``). Variants: ``base``, ``noslipN``
+(N noslip iterations), ``fricF`` (sliding friction F on every geom), ``timeconstT`` (contact solref
+time constant T s), ``elliptic`` (elliptic friction cones, impratio 10).
+
+    python scripts/sole_slip_variants.py --expert runs/expert_set2 -d runs/bandai2.h5 --split test \\
+        --clips 'dataset-2_walk*' base noslip10 fric2 timeconst0.01 elliptic
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+from motok.control.track import load_controller, track
+
+
+def apply(model, variant: str) -> None:
+    if variant == "base":
+        return
+    if variant.startswith("noslip"):
+        model.opt.noslip_iterations = int(variant[len("noslip"):])
+    elif variant.startswith("fric"):
+        model.geom_friction[:, 0] = float(variant[len("fric"):])
+    elif variant.startswith("timeconst"):
+        model.geom_solref[:, 0] = float(variant[len("timeconst"):])
+    elif variant == "elliptic":
+        model.opt.cone, model.opt.impratio = 1, 10.0
+    else:
+        raise SystemExit(f"unknown variant {variant!r} (base, noslipN, fricF, timeconstT, elliptic)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--expert")
+    ap.add_argument("--prior")
+    ap.add_argument("-d", "--data", required=True)
+    ap.add_argument("--split")
+    ap.add_argument("--clips")
+    ap.add_argument("variants", nargs="+")
+    a = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        for v in a.variants:
+            ctl = load_controller(expert=a.expert, prior=a.prior)
+            apply(ctl[1].model, v)
+            r = track(ctl, a.data, Path(tmp) / f"{v}.h5", clips=a.clips, split=a.split)
+            s, ref = r["sole_slip"]["simulated"], r["sole_slip"]["reference"]
+            print(json.dumps({"variant": v, "tracked_to_end": round(r["tracked_to_end"], 3),
+                              "mpjpe_mm": round(r["mpjpe_mm"], 1), "slip_cm_s": round(s["sole_slip_cm_s"], 1),
+                              "slip_ratio": round(s["sole_slip_ratio"], 3), "contact": round(s["sole_contact_fraction"], 3),
+                              "reference_slip_cm_s": round(ref["sole_slip_cm_s"], 1)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -35,13 +35,19 @@ def apply(model, variant: str) -> None:
         raise SystemExit(f"unknown variant {variant!r} (base, noslipN, fricF, timeconstT, elliptic)")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def clip_parser(doc: str) -> argparse.ArgumentParser:
+    """The controller (``--expert`` or ``--prior``) and the clips it plays, as ``control track`` takes them."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
     ap.add_argument("--expert")
     ap.add_argument("--prior")
     ap.add_argument("-d", "--data", required=True)
     ap.add_argument("--split")
     ap.add_argument("--clips")
+    return ap
+
+
+def main() -> None:
+    ap = clip_parser(__doc__)
     ap.add_argument("variants", nargs="+")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,5 +1,6 @@
 """Sole slip (motok.sim.soles): the box corners against MuJoCo's own geometry, known slip values
-for planted, sliding and rolling feet, and the reference walks' slip on real data."""
+for planted, sliding and rolling feet, and the reference walks' slip on real data; the floor
+contacts' forces and slip against a box resting and one pushed along the floor."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from motok.rotations import quat_to_matrix
-from motok.sim.soles import SLIP_SPEED, slip_sums, soles
+from motok.sim.soles import SLIP_SPEED, contact_runs, floor_contacts, slip_sums, soles
 
 
 def test_corners_are_the_bottom_corners_of_mujocos_boxes(hum, lib):
@@ -88,3 +89,37 @@ def test_reference_walks_hardly_slide_and_a_drifting_copy_does(hum, lib):
     assert d["sole_contact_fraction"] == r["sole_contact_fraction"]  # heights untouched
     assert d["sole_slip_ratio"] > 0.95 and 40 < d["sole_slip_cm_s"] < 50 + r["sole_slip_cm_s"]
     assert SLIP_SPEED == 0.05
+
+
+BOX_ON_FLOOR = """<mujoco><option timestep="0.0083333333" integrator="implicitfast"/>
+<worldbody><geom type="plane" size="0 0 0.05" friction="0.8"/>
+<body pos="0 0 0.04"><freejoint/><geom type="box" size="0.07 0.04 0.03" mass="10" friction="0.8"/></body>
+</worldbody></mujoco>"""
+
+
+def test_floor_contacts_carry_the_weight_and_slide_at_the_cone_when_pushed():
+    m = mujoco.MjModel.from_xml_string(BOX_ON_FLOOR)
+    d, feet, weight = mujoco.MjData(m), m.geom_bodyid > 0, 10 * 9.81
+    for _ in range(120):  # settle
+        mujoco.mj_step(m, d)
+    mujoco.mj_forward(m, d)
+    c = floor_contacts(m, d, feet)
+    assert len(c) == 4 and set(c[:, 4]) == {1}  # the box's four bottom corners, all the box's geom
+    assert c[:, 0].sum() == pytest.approx(weight, rel=0.01) and c[:, 2].max() < 1e-3 and (c[:, 3] < 0).all()
+    # pushed at twice what friction holds: it slides, each contact's friction at the cone's edge
+    # (the pyramid's, within a few %) and its slip the box's own speed (the box does not turn)
+    d.xfrc_applied[1, 0] = 2 * 0.8 * weight
+    for _ in range(60):
+        mujoco.mj_step(m, d)
+    mujoco.mj_forward(m, d)
+    c = floor_contacts(m, d, feet)
+    assert c[:, 1].sum() == pytest.approx(0.8 * c[:, 0].sum(), rel=0.05)
+    np.testing.assert_allclose(c[:, 2], np.hypot(*d.qvel[:2]), rtol=1e-3)
+    assert d.qvel[0] > 1.0
+    assert len(floor_contacts(m, d, np.zeros(m.ngeom, bool))) == 0  # no foot marked: nothing
+
+
+def test_contact_runs_are_the_lengths_of_unbroken_contacts():
+    flags = np.array([[0, 1], [1, 1], [1, 0], [0, 0], [1, 0]], bool)  # (T, G)
+    assert contact_runs(flags).tolist() == [2, 1, 2]  # geom 0: 2 then 1 (at the end), geom 1: 2 (from the start)
+    assert contact_runs(np.zeros((3, 2), bool)).size == 0

@@ -105,3 +105,34 @@ def slip_sums(corners: np.ndarray, dt: float, valid: np.ndarray | None = None,
 def reference_corners(sole: Soles, body_pos: np.ndarray, body_quat: np.ndarray) -> np.ndarray:
     """Corners of reference frames from a library's ``body_pos`` and ``body_quat`` (w, x, y, z)."""
     return sole.world(np.asarray(body_pos, np.float64), quat_to_matrix(np.asarray(body_quat, np.float64)))
+
+
+def floor_contacts(m, d, feet: np.ndarray) -> np.ndarray:
+    """The contacts between the geoms marked in ``feet`` ``(ngeom,)`` and the world's (the floor), at
+    ``d``'s state after ``mj_forward`` (or ``mj_step``, whose contacts and velocities are those of the
+    state it started from): rows ``(normal force N, friction force N, slip speed m/s, distance m,
+    geom)``. The slip is the horizontal velocity of the foot's material point at the contact
+    (``mj_objectVelocity`` of the geom, moved to the contact point), the floor being static."""
+    import mujoco
+
+    rows, f6, v6 = [], np.zeros(6), np.zeros(6)
+    for i in range(d.ncon):
+        c = d.contact[i]
+        g1, g2 = int(c.geom1), int(c.geom2)
+        g = g1 if m.geom_bodyid[g2] == 0 and feet[g1] else g2 if m.geom_bodyid[g1] == 0 and feet[g2] else -1
+        if g < 0 or c.efc_address < 0:  # not a foot on the floor, or excluded from the constraints
+            continue
+        mujoco.mj_contactForce(m, d, i, f6)
+        mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_GEOM, g, v6, 0)  # [angular, linear], world axes
+        v = v6[3:] + np.cross(v6[:3], c.pos - d.geom_xpos[g])
+        rows.append((f6[0], np.hypot(f6[1], f6[2]), np.hypot(v[0], v[1]), c.dist, g))
+    return np.asarray(rows, np.float64).reshape(-1, 5)
+
+
+def contact_runs(flags: np.ndarray) -> np.ndarray:
+    """Lengths (in samples) of the uninterrupted contacts in each column of ``flags`` ``(T, G)``
+    (whether geom ``g`` touches at sample ``t``), column after column."""
+    f = np.pad(np.asarray(flags, np.int8), ((1, 1), (0, 0)))
+    edges = np.diff(f, axis=0).T  # (G, T + 1): +1 where a contact starts, -1 after it ends
+    starts, ends = np.nonzero(edges == 1), np.nonzero(edges == -1)
+    return ends[1] - starts[1]

@@ -51,6 +51,10 @@ class Recorder:
         return self.inner.step(ctrl)
 
 
+def median(x: np.ndarray) -> float:
+    return float(np.median(x)) if len(x) else float("nan")  # a few clips may have no sticking contact at all
+
+
 def main() -> None:
     ap = clip_parser(__doc__)
     ap.add_argument("--max-clips", type=int, default=24)
@@ -120,8 +124,7 @@ def main() -> None:
         "share_of_load": {b: float(fn[idx == i].sum() / fn.sum()) for i, b in enumerate(bins)},
         "slip_cm_s": {"median": float(100 * np.median(v)), "mean": float(100 * v.mean()),
                       "load_weighted": float(100 * (fn * v).sum() / fn.sum())},
-        "friction_use": {"sliding_over_5cm_s": float(np.median(use[v > 0.05])),
-                         "sticking_under_1cm_s": float(np.median(use[v < 0.01]))},
+        "friction_use": {"sliding_over_5cm_s": median(use[v > 0.05]), "sticking_under_1cm_s": median(use[v < 0.01])},
         "feet_load_over_weight": {"mean": float(np.mean(load) / weight), "p95": float(np.percentile(load, 95) / weight),
                                   "share_of_substeps_unloaded": float(np.mean(np.asarray(load) < 1e-6))},
         "penetration_mm": {"median": float(-1000 * np.median(dist)), "p95": float(-1000 * np.percentile(dist, 5))},

@@ -20,6 +20,8 @@ from motok.errors import UnknownNameError, UserError
 from motok.skeleton import Skeleton
 
 MOTION_KINDS = ("motion-dataset", "motion")
+# What a clip in no split carries: "none" is what motok writes (own data, GPT samples); "" older files.
+NO_SPLIT = ("none", "")
 
 
 @dataclass

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.data.dataset import MotionFile
+from motok.data.dataset import NO_SPLIT, MotionFile
 from motok.eval import metrics as M
 from motok.eval.evaluator import UNIT, EvaluatorError, load_split
 from motok.features.humanml3d import recover_from_ric
@@ -89,13 +89,13 @@ def motion_set(path: Path, name: str | None = None, split: str | None = None) ->
     labels per caption) feed MModality; ``sample`` labels spread the others over the repeats.
 
     With ``split``, clips that carry another split are left out (a tracked dataset keeps its
-    clips' splits); clips without one (GPT samples) stay. How many were left out is in ``extra``."""
+    clips' splits); clips in no split (:data:`~motok.data.dataset.NO_SPLIT`: GPT samples) stay. How many were left out is in ``extra``."""
     with MotionFile(path) as mf:
         sd = load_split(mf, None)
         if not sd.clips:
             raise EvaluatorError(f"{path}: no clip has a caption; the t2m metrics need the text of every motion")
         idx = [mf.index(n) for n in sd.names]
-        other = [k for k, i in enumerate(idx) if split and mf.splits[i] not in ("", split)]
+        other = [k for k, i in enumerate(idx) if split and mf.splits[i] not in (*NO_SPLIT, split)]
         if other:
             if len(other) == len(idx):
                 raise EvaluatorError(f"{path}: none of its {len(idx)} captioned clips is in split {split!r} "

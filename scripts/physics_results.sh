@@ -233,13 +233,15 @@ stage_t2p() {
     train "$K/tokenizer" tokenizer "${M[@]}" tokenize train -d "$DATA" --recipe recipes/tokenizer/ema_reset.yaml "${KIN[@]}"
     once "$K/tokens.h5" tokens "${M[@]}" tokenize encode -t "$K/tokenizer" -d "$DATA" -o "$K/tokens.h5"
     train "$K/gpt" gpt "${M[@]}" gpt train -d "$K/tokens.h5" --recipe recipes/gpt/default.yaml "${KIN[@]}"
-    # each keyed on what is written last: a stop between the motion and its report redoes both
+    # each keyed on what is written last: a stop between the motion and its report redoes both;
+    # the physics table scores each motion beside its tracked copy on the clips both hold
+    # (--common-clips), the GPT's whole kinematic row being t2m-kinematic's
     once "$K/t2m-kinematic.json" t2m "${M[@]}" eval t2m -e "$K/bow-v2" -d "$DATA" -t "$K/tokenizer" --gpt "$K/gpt" \
         --recipe "$T2M_RECIPE" --save-generated "$K/generated.h5" -o "$K/t2m-kinematic.json" -o "$K/t2m-kinematic.md"
     once "$K/generated_sim.track.json" track "${M[@]}" control track -d "$K/generated.h5" --prior "$P" -o "$K/generated_sim.h5" --json
     once "$K/real_test_sim.track.json" track "${M[@]}" control track -d "$DATA" --split test --prior "$P" -o "$K/real_test_sim.h5" --json
     once "$K/t2m-physics.json" t2m "${M[@]}" eval t2m -e "$K/bow-v2" -d "$DATA" --motions "$K/generated.h5" \
-        --motions "$K/generated_sim.h5" --motions "$K/real_test_sim.h5" --recipe "$T2M_RECIPE" \
+        --motions "$K/generated_sim.h5" --motions "$K/real_test_sim.h5" --recipe "$T2M_RECIPE" --common-clips \
         -o "$K/t2m-physics.json" -o "$K/t2m-physics.md"
 }
 

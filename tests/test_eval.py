@@ -239,14 +239,15 @@ def test_embeddings_do_not_depend_on_batch_padding(tiny_evaluator, labelled_data
 
 # --------------------------------------------------------------------------- the t2m report
 
-def _motion_copy(src: Path, out: Path, noise: float, samples: int = 1) -> Path:
-    """A ``motion`` artifact of the test clips with noisy features, ``samples`` copies per clip."""
+def _motion_copy(src: Path, out: Path, noise: float, samples: int = 1, split: str | None = "test") -> Path:
+    """A ``motion`` artifact of the ``split`` clips (all with None) with noisy features, ``samples``
+    copies per clip."""
     from motok.artifacts import Provenance
     from motok.data.dataset import MotionFile, write_motion
     rng = np.random.default_rng(9)
     with MotionFile(src) as mf:
         clips = []
-        for i in mf.split_indices("test"):
+        for i in (mf.split_indices(split) if split else range(len(mf))):
             for s in range(samples):
                 c = mf.clip(i)
                 c.features = c.features + noise * rng.normal(size=c.features.shape).astype(np.float32)
@@ -303,6 +304,36 @@ def test_motions_rows_keep_the_split_and_samples_without_one(tiny_evaluator, lab
     assert len(motion_set(tmp_path / "train.h5").clips) == 6  # no split asked: everything
     with pytest.raises(EvaluatorError, match=r"train\.h5: none of its 6 captioned clips is in split 'test'"):
         motion_set(tmp_path / "train.h5", split="test")
+
+
+def test_common_clips_scores_rows_on_the_clips_they_share(tiny_evaluator, labelled_dataset, tmp_path):
+    """--common-clips: a tracked copy that lost some clips and the real split are scored on the
+    clips both hold, exactly as those clips alone; a row sharing no name keeps all of its clips."""
+    from motok.artifacts import Provenance
+    from motok.data.dataset import MotionFile, write_motion
+    from motok.eval.report import T2MConfig, markdown, t2m
+    with MotionFile(labelled_dataset) as mf:
+        test = [mf.clip(i) for i in mf.split_indices("test") if mf.captions(i)]
+        kept = [c for k, c in enumerate(test) if k % 7 != 3]  # "tracking" wrote no clip for the others
+        write_motion(tmp_path / "kept.h5", "motion", Provenance("pytest", {}), kept, mf.skeleton, mf.offsets,
+                     mf.fps, False)
+    tracked = _motion_copy(tmp_path / "kept.h5", tmp_path / "tracked.h5", noise=0.2, split=None)
+    gen = _motion_copy(labelled_dataset, tmp_path / "gen.h5", noise=0.5, samples=2)
+    cfg = T2MConfig(repeats=2, physical=False, common_clips=True)
+    real, trk, g = t2m(tiny_evaluator[0], labelled_dataset, cfg, motions=[tracked, gen])["rows"]
+    n_left = len(test) - len(kept)
+    assert n_left > 0 and real["motions"] == trk["motions"] == len(kept) and g["motions"] == len(test)
+    assert real["common_clips_left_out"] == n_left and trk["common_clips_left_out"] == 0
+    assert "common_clips_left_out" not in g
+    # the restricted real row is those clips scored alone, in the same place
+    (alone,) = t2m(tiny_evaluator[0], labelled_dataset, cfg, motions=[tmp_path / "kept.h5"], real=False)["rows"]
+    assert alone["repeats"] == real["repeats"]
+    assert f"real motion: {n_left} clip(s) left out" in markdown(t2m(tiny_evaluator[0], labelled_dataset, cfg,
+                                                                     motions=[tracked]))
+    # without the flag every row keeps its clips
+    real, trk = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=1, physical=False),
+                    motions=[tracked])["rows"]
+    assert real["motions"] == len(test) and trk["motions"] == len(kept)
 
 
 def _wrongly_captioned(src: Path, out: Path) -> Path:
@@ -497,6 +528,9 @@ def test_cli_t2m_fid_alias_recon_and_physical(tiny_evaluator, labelled_dataset, 
     assert r.exit_code == 0 and json.loads(r.output)["captions"] == "unseen", r.output
     r = runner.invoke(app, base + ["--captions", "novel"])
     assert r.exit_code == 2 and "all or unseen" in r.output
+    r = runner.invoke(app, base + ["--common-clips", "--json"])  # gen holds every test clip: nothing left out
+    assert r.exit_code == 0 and json.loads(r.output)["config"]["common_clips"] is True, r.output
+    assert [x["common_clips_left_out"] for x in json.loads(r.output)["rows"]] == [0, 0]
     bad = runner.invoke(app, ["eval", "t2m", "-e", str(tmp_path / "nope"), "--data", str(labelled_dataset)])
     assert bad.exit_code == 2 and "bundle" in bad.output
     bad = runner.invoke(app, ["eval", "train-evaluator", "--data", str(labelled_dataset), "-o", str(tmp_path / "e"),

@@ -52,6 +52,8 @@ def _t2m_command(
                                            help="unseen: only the captions that do not occur word for word in "
                                                 "the train split (clips without one are left out; default all)."),
     no_real: bool = typer.Option(False, "--no-real", help="Skip the real-motion row."),
+    common: bool = typer.Option(False, "--common-clips", help="Rows that hold clips of the same names (a tracked "
+                                "file and what it tracked) are scored on the names all of them hold."),
     save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples here (.h5).",
                                                    suffixes=H5, required=False),
     outs: list[Path] = output_option(help="Write the report: the full report to a .json, the table to a .md "
@@ -67,7 +69,7 @@ def _t2m_command(
         fail("-o takes at most one .json and one .md")
     flags = {"split": split, "repeats": repeats, "captions": captions}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
-    overrides += ["gt_length=true"] * gt_length
+    overrides += ["gt_length=true"] * gt_length + ["common_clips=true"] * common
     cfg = run(load_config, T2MConfig, recipe, overrides)
     rep = run(t2m, evaluator, data, cfg, tokenizer=tokenizer, gpt=gpt, motions=motions,
               save_generated=save_generated, real=not no_real)

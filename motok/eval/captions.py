@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -90,13 +89,9 @@ def unseen_only(ms: MotionSet, seen: set[str]) -> MotionSet:
     keep = [i for i, caps in enumerate(ms.captions) if any(t not in seen for t in caps)]
     groups = [(g, t) for g, t in zip(ms.mm_groups, ms.mm_texts or [None] * len(ms.mm_groups))
               if t is None or t not in seen]
-    return replace(
-        ms, clips=[ms.clips[i] for i in keep], captions=[[t for t in ms.captions[i] if t not in seen] for i in keep],
-        sample=ms.sample[keep] if ms.sample is not None else None,
-        joints=[ms.joints[i] for i in keep] if ms.joints is not None else None,
-        labels=[ms.labels[i] for i in keep] if ms.labels is not None else None,
-        mm_groups=[g for g, _ in groups], mm_texts=[t for _, t in groups] if ms.mm_texts else [],
-        extra={**ms.extra, "captions": "unseen"})
+    return ms.subset(keep, captions=[[t for t in ms.captions[i] if t not in seen] for i in keep],
+                     mm_groups=[g for g, _ in groups], mm_texts=[t for _, t in groups] if ms.mm_texts else [],
+                     extra={**ms.extra, "captions": "unseen"})
 
 
 def label_ceiling(labels: list[str], batch: int = 32, top_k: int = 3, shuffles: int = 200,

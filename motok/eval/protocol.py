@@ -42,6 +42,9 @@ class T2MConfig:
     # (motok.eval.captions); clips without one are left out of every row and of the reference.
     captions: str = "all"
     train_split: str = "train"
+    # Rows holding clips of the same names (a tracked file beside what it tracked) scored on the
+    # names all of them hold (motok.eval.sets.common_clips); the reference statistics stay whole.
+    common_clips: bool = False
     # Generation with --gpt: sets of one sample per clip (the protocol regenerates every repeat:
     # gen_sets = repeats; fewer sets are reused in turn) and the MModality samples.
     gen_sets: int = 20

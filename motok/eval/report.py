@@ -20,7 +20,7 @@ from motok.eval.captions import label_ceiling, training_captions, unseen_only
 from motok.eval.evaluator import EvaluatorError, load_evaluator
 from motok.eval.generate import generated_set
 from motok.eval.protocol import T2MConfig, evaluate_rows, physical_of
-from motok.eval.sets import motion_set, real_set, recon_set
+from motok.eval.sets import common_clips, motion_set, real_set, recon_set
 
 __all__ = ["COLUMNS", "PHYSICAL", "T2MConfig", "headers", "markdown", "recon", "rich_table", "save_report", "t2m"]
 
@@ -66,6 +66,8 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
         rows = [r if r is ref else unseen_only(r, seen) for r in rows]
     if not rows:
         raise EvaluatorError("nothing to evaluate: give --tokenizer, --gpt or --motions (or keep the real row)")
+    if cfg.common_clips:
+        rows = common_clips(rows)
     results = evaluate_rows(ev, ref, rows, cfg)
     ev_text = ev.meta["config"]["text_encoder"]
     for res in results:
@@ -136,6 +138,9 @@ def markdown(report: dict) -> str:
         if r.get("other_split_left_out"):
             lines.append(f"{r['name']}: {r['other_split_left_out']} clip(s) of other splits than {report['split']} "
                          f"left out.")
+        if r.get("common_clips_left_out"):
+            lines.append(f"{r['name']}: {r['common_clips_left_out']} clip(s) left out that a row sharing its clip "
+                         f"names does not hold (--common-clips).")
         if r.get("text_side"):
             lines.append(f"{r['name']}: the GPT reads text with `{r['gpt_text_encoder']}`, the evaluator with "
                          f"`{report['text_encoder']}` ({r['text_side']} text side).")

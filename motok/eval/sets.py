@@ -7,7 +7,7 @@ artifact (GPT samples from :mod:`motok.eval.generate` included) all become a
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +31,22 @@ class MotionSet:
     extra: dict = field(default_factory=dict)
     labels: list[str] | None = None  # per clip, canonical JSON of the dataset labels (real motion)
     mm_texts: list[str] = field(default_factory=list)  # the caption of each MModality group
+    names: list[str] | None = None  # per clip, its name in the file it came from
 
     def for_repeat(self, r: int) -> list[int]:
         if self.sample is None:
             return list(range(len(self.clips)))
         return list(np.flatnonzero(self.sample == r % (int(self.sample.max()) + 1)))
+
+    def subset(self, keep: list[int], **changes) -> MotionSet:
+        """The clips ``keep`` (indices, in order) with everything per clip that goes with them;
+        MModality clips and groups are left as they are unless ``changes`` says otherwise."""
+        def pick(col):
+            return None if col is None else [col[i] for i in keep]
+        cols = {"clips": pick(self.clips), "captions": pick(self.captions), "joints": pick(self.joints),
+                "labels": pick(self.labels), "names": pick(self.names),
+                "sample": None if self.sample is None else self.sample[np.asarray(keep, dtype=np.int64)]}
+        return replace(self, **{**cols, **changes})
 
 
 def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
@@ -51,7 +62,7 @@ def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
         info = {"fps": mf.fps, "feet": (tuple(sk.feet_left), tuple(sk.feet_right)), "num_joints": sk.num_joints,
                 "names": sd.names, "labels": sd.labels}
     return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints},
-                     labels=sd.labels), info
+                     labels=sd.labels, names=list(sd.names)), info
 
 
 def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: int | None = None) -> MotionSet:
@@ -61,12 +72,13 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
     from motok.tokenizer.train import load_tokenizer
     model, meta = load_tokenizer(tokenizer)
     m = num_codebooks or model.num_codebooks
-    clips, caps, err = [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
+    clips, caps, names, err = [], [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
     with torch.no_grad():
-        for c, cap, j in zip(ref.clips, ref.captions, ref.joints):
+        for k, (c, cap, j) in enumerate(zip(ref.clips, ref.captions, ref.joints)):
             T = len(c) // model.rate * model.rate
             if T < UNIT:
                 continue
+            names.append(ref.names[k] if ref.names else str(k))
             codes = model.encode_features(torch.from_numpy(np.asarray(c[:T]))[None], m)[..., :m]
             pred = model.decode_features(codes, m)[0].numpy()
             clips.append(pred)
@@ -79,7 +91,7 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
     recon = {"mpjpe_mm": float(np.concatenate(err["mpjpe"]).mean()),
              "mpjpe_global_mm": float(np.concatenate(err["mpjpe_global"]).mean()),
              "accel_error_mm": float(np.concatenate(err["accel"]).mean())}
-    return MotionSet(f"reconstruction ({Path(tokenizer).name})", clips, caps,
+    return MotionSet(f"reconstruction ({Path(tokenizer).name})", clips, caps, names=names,
                      extra={"num_joints": num_joints, "recon": recon, "tokenizer": str(tokenizer),
                             "tokenizer_sha256": meta["model_sha256"]})
 
@@ -121,5 +133,43 @@ def motion_set(path: Path, name: str | None = None, split: str | None = None) ->
     return MotionSet(name or Path(path).stem, [sd.clips[k] for k in main], [sd.captions[k] for k in main],
                      sample=sample, mm_groups=[g for _, g in multi], mm_texts=[t for t, _ in multi],
                      mm_clips=[sd.clips[k] for k in mm], joints=[joints[k] for k in main],
+                     names=[sd.names[k] for k in main],
                      extra={"num_joints": J, "motions_file": str(path),
                             **({"other_split_left_out": len(other)} if other else {})})
+
+
+def common_clips(rows: list[MotionSet]) -> list[MotionSet]:
+    """Rows that hold clips of the same names (a tracked file and what it tracked, the real split
+    and a tracked copy of it) each restricted to the names all of them hold, so that they are
+    scored on the same clips: tracking writes no clip that fails at once, and keeps a failing one
+    only to its failure. Rows are grouped by shared names, transitively; a row that shares no
+    name keeps every clip. MModality clips are left as they are (it compares a row with itself).
+    How many clips each row left out is in ``extra["common_clips_left_out"]``."""
+    names = [set(r.names or ()) for r in rows]
+    group = list(range(len(rows)))  # union-find over rows by shared names
+
+    def root(i):
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+    for i in range(len(rows)):
+        for j in range(i):
+            if names[i] & names[j]:
+                group[root(i)] = root(j)
+    shared: dict[int, set] = {}
+    for i in range(len(rows)):
+        r = root(i)
+        shared[r] = names[i] if r not in shared else shared[r] & names[i]
+    out = []
+    for i, row in enumerate(rows):
+        members = sum(root(j) == root(i) for j in range(len(rows)))
+        if members < 2:
+            out.append(row)
+            continue
+        keep = [k for k, n in enumerate(row.names) if n in shared[root(i)]]
+        if len(keep) < 2:
+            raise EvaluatorError(f"{row.name}: {len(keep)} clip(s) in common with the rows that share its clip "
+                                 f"names; --common-clips needs 2+")
+        out.append(row.subset(keep, extra={**row.extra, "common_clips_left_out": len(row.clips) - len(keep)}))
+    return out

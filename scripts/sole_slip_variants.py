@@ -4,7 +4,10 @@ Each variant edits the loaded MuJoCo model in memory (the run's MJCF stays as it
 same clips with ``motok.control.track``; a row per variant: tracked to the end, MPJPE, and the sole
 slip of the simulated and reference feet (``motok.sim.soles``). Variants: ``base``, ``noslipN``
 (N noslip iterations), ``fricF`` (sliding friction F on every geom), ``timeconstT`` (contact solref
-time constant T s), ``elliptic`` (elliptic friction cones, impratio 10).
+time constant T s), ``elliptic`` (elliptic friction cones, impratio 10), ``kvX`` (every PD damping
+times X), ``kpX`` (stiffness and damping times X), ``ramp`` (each control step's PD targets ramped
+from the previous step's over its substeps instead of held, on the rollout stepper) and ``rollout``
+(the rollout stepper holding them: the control for ``ramp``).
 
     python scripts/sole_slip_variants.py --expert runs/expert_set2 -d runs/bandai2.h5 --split test \\
         --clips 'dataset-2_walk*' base noslip10 fric2 timeconst0.01 elliptic
@@ -17,11 +20,49 @@ import json
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from motok.control.track import load_controller, track
+from motok.sim import steppers
+
+ROLLOUT = steppers.RolloutStepper
 
 
-def apply(model, variant: str) -> None:
+class RampStepper(steppers.RolloutStepper):
+    """PD targets ramped linearly over the substeps from the previous control step's (from the
+    joints' own angles after a reset) to the new ones: no step in the targets every 33 ms."""
+
+    def __init__(self, hum, num_envs, substeps, nthread=2):
+        super().__init__(hum, num_envs, substeps, nthread)
+        self._driven = self.model.jnt_qposadr[self.model.actuator_trnid[:, 0]]
+        self._prev = np.zeros((num_envs, self.model.nu))
+        self._frac = (np.arange(1, substeps + 1) / substeps)[None, :, None]
+
+    def set_state(self, ids, qpos, qvel) -> None:
+        super().set_state(ids, qpos, qvel)
+        self._prev[ids] = self.qpos[ids][:, self._driven]
+
+    def _substep_ctrl(self, ctrl: np.ndarray) -> None:
+        target = np.asarray(ctrl, np.float64)
+        self._ctrl[:] = self._prev[:, None] + self._frac * (target - self._prev)[:, None]
+        self._prev = target.copy()
+
+
+def apply(ctl, variant: str) -> None:
+    cfg, model = ctl[0], ctl[1].model
     if variant == "base":
+        return
+    if variant in ("ramp", "rollout"):
+        cfg.env.stepper = "rollout"
+        steppers.RolloutStepper = RampStepper if variant == "ramp" else ROLLOUT
+        return
+    if variant.startswith("kv"):
+        model.actuator_biasprm[:, 2] *= float(variant[2:])
+        return
+    if variant.startswith("kp"):
+        x = float(variant[2:])
+        model.actuator_gainprm[:, 0] *= x
+        model.actuator_biasprm[:, 1:3] *= x
         return
     if variant.startswith("noslip"):
         model.opt.noslip_iterations = int(variant[len("noslip"):])
@@ -32,7 +73,8 @@ def apply(model, variant: str) -> None:
     elif variant == "elliptic":
         model.opt.cone, model.opt.impratio = 1, 10.0
     else:
-        raise SystemExit(f"unknown variant {variant!r} (base, noslipN, fricF, timeconstT, elliptic)")
+        raise SystemExit(f"unknown variant {variant!r} (base, noslipN, fricF, timeconstT, elliptic, kvX, kpX, "
+                         f"ramp, rollout)")
 
 
 def clip_parser(doc: str) -> argparse.ArgumentParser:
@@ -53,7 +95,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for v in a.variants:
             ctl = load_controller(expert=a.expert, prior=a.prior)
-            apply(ctl[1].model, v)
+            steppers.RolloutStepper = ROLLOUT
+            apply(ctl, v)
             r = track(ctl, a.data, Path(tmp) / f"{v}.h5", clips=a.clips, split=a.split)
             s, ref = r["sole_slip"]["simulated"], r["sole_slip"]["reference"]
             print(json.dumps({"variant": v, "tracked_to_end": round(r["tracked_to_end"], 3),

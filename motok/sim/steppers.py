@@ -93,8 +93,13 @@ class RolloutStepper:
         self.state[rows, self._q + np.asarray(qcols)] = qpos
         self.state[rows, self._v + np.asarray(vcols)] = qvel
 
-    def step(self, ctrl: np.ndarray) -> np.ndarray:
+    def _substep_ctrl(self, ctrl: np.ndarray) -> None:
+        """The controls of every substep, ``self._ctrl (N, substeps, nu)``: held (a diagnostic of
+        scripts/sole_slip_variants.py ramps them)."""
         self._ctrl[:] = ctrl[:, None]
+
+    def step(self, ctrl: np.ndarray) -> np.ndarray:
+        self._substep_ctrl(ctrl)
         t0 = self.state[:, self._t].copy()
         datas = self._datas if self.nthread > 1 else self._datas[:1]
         self._pool.rollout(self._models, datas, self.state, self._ctrl, skip_checks=True, nstep=self.substeps,

@@ -13,7 +13,9 @@ Printed: the share of contact substeps and of the feet's normal load by slip spe
 load-weighted slip (the slip of the sole that bears the weight), the friction use |F_t| / (mu F_n)
 of sliding and of sticking contacts, the feet's load against the body weight, the penetration,
 and how long each foot or toe box stays in contact without a break (a planted stance of a walk
-lasts about 0.6 s).
+lasts about 0.6 s). And how much the PD targets move from one control step to the next against
+how much the simulated joints and the reference's joints move (rad per step, root mean square, by
+joint group): targets that jump far more than either are a controller chattering.
 
     python scripts/stance_forces.py --expert runs/expert_set2 -d runs/bandai2.h5 --split test \\
         --clips 'dataset-2_walk*' --max-clips 24
@@ -47,8 +49,11 @@ class Recorder:
         return getattr(self.inner, name)
 
     def step(self, ctrl):
-        self.steps.append((self.inner.qpos.copy(), self.inner.qvel.copy(), np.array(ctrl, copy=True)))
-        return self.inner.step(ctrl)
+        qpos, qvel = self.inner.qpos.copy(), self.inner.qvel.copy()
+        failed = self.inner.step(ctrl)
+        # the controls of every substep as the rollout stepper applied them (held, or ramped)
+        self.steps.append((qpos, qvel, np.array(ctrl, copy=True), self.inner._ctrl.copy()))
+        return failed
 
 
 def median(x: np.ndarray) -> float:
@@ -60,8 +65,9 @@ def main() -> None:
     ap.add_argument("--max-clips", type=int, default=24)
     ap.add_argument("--world", default="base", help="a change to the world, zero-shot (scripts/sole_slip_variants.py)")
     a = ap.parse_args()
-    cfg, hum, ac, _ = load_controller(expert=a.expert, prior=a.prior)
-    apply(hum.model, a.world)
+    ctl = load_controller(expert=a.expert, prior=a.prior)
+    cfg, hum, ac, _ = ctl
+    apply(ctl, a.world)
     names = select_clips(a.data, a.clips, a.split)[:a.max_clips]
     lib, _ = place_on_floor(load_library(hum, a.data, control_hz=hum.control_hz, clips=names, use_cache=False))
     sim = replace(cfg.env, stepper="rollout", nthread=1)
@@ -96,12 +102,13 @@ def main() -> None:
     touching = {}  # env -> per substep, which foot geoms touch the floor
     alive = out["alive"]
     steps = env.stepper.steps
-    for t, (qpos, qvel, ctrl) in enumerate(steps):
+    for t, (qpos, qvel, _, sub) in enumerate(steps):
         for k in np.flatnonzero(alive[:, t + 1] & alive[:, t]):
-            d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[k], qvel[k], ctrl[k]
+            d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[k], qvel[k], sub[k, 0]
             d.qacc_warmstart[:] = 0
             mujoco.mj_forward(m, d)
-            for _ in range(env.substeps):
+            for s in range(env.substeps):
+                d.ctrl[:] = sub[k, s]
                 mujoco.mj_step(m, d)
                 cs = floor_contacts(m, d, feet)
                 rows.append(cs)
@@ -131,7 +138,32 @@ def main() -> None:
         "contact_duration_ms": {"median": float(1000 * np.median(runs)), "mean": float(1000 * runs.mean()),
                                 "share_of_contact_time_in_runs_under_50ms": float(runs[runs < 0.05].sum() / runs.sum())},
     }
+    report["step_rms_rad"] = chatter(m, lib, steps, alive)
     print(json.dumps(report, indent=1))
+
+
+def chatter(m, lib, steps, alive) -> dict:
+    """Root-mean-square change per control step of the PD targets, the simulated joints and the
+    reference's joints, by joint group (over the steps where the clip is still tracked)."""
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(m.nu)]
+    driven = m.jnt_qposadr[m.actuator_trnid[:, 0]]
+    target = np.stack([s[2] for s in steps])  # (T, N, nu)
+    q = np.stack([s[0] for s in steps])[..., driven]
+    T = len(steps)
+    ok = np.stack([alive[:, t] & alive[:, t + 1] & alive[:, t + 2] for t in range(T - 1)])  # (T-1, N)
+    d_target, d_q = np.diff(target, axis=0)[ok], np.diff(q, axis=0)[ok]
+    inside = np.ones(len(lib.qpos) - 1, bool)
+    inside[lib.starts[1:-1] - 1] = False  # no step across two clips
+    d_ref = np.diff(lib.qpos[:, driven], axis=0)[inside]
+    groups = {"ankles": ("Foot_",), "knees": ("LowerLeg_",), "hips": ("UpperLeg_",),
+              "trunk": ("Spine", "Chest", "Neck"), "arms": ("Shoulder", "UpperArm", "LowerArm")}
+    out = {}
+    for g, prefixes in {"all": ("",), **groups}.items():
+        cols = [i for i, n in enumerate(names) if n.startswith(prefixes)]
+        if cols:
+            out[g] = {k: float(np.sqrt(np.mean(v[:, cols] ** 2)))
+                      for k, v in (("targets", d_target), ("simulated", d_q), ("reference", d_ref))}
+    return out
 
 
 if __name__ == "__main__":

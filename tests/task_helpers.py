@@ -1,5 +1,5 @@
 """Helpers the task tests share: a task MDP on the real humanoid, yaw rotations, placing
-environments exactly in library frames."""
+environments exactly in library frames, an evaluation played to the end."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import math
 from functools import partial
 
 import numpy as np
+import pytest
 
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.tasks.base import TaskEnv
@@ -29,3 +30,22 @@ def place(mdp, ids, g, shift=(0.0, 0.0, 0.0)):
     q, v = mdp.task.lib.qpos[g].copy(), mdp.task.lib.qvel[g].copy()
     q[:, :3] += shift
     mdp.env.set_state(np.asarray(ids), q, v)
+
+
+def played_to_the_end(evaluate, make_mdp, tight: float, metrics, seconds: float, episodes: int = 3):
+    """Whole-episode evaluation (Tables 2-3): ``make_mdp()`` and ``make_mdp(termination_distance=tight)``
+    (a failure test that fires within a few frames) evaluated with a zero policy on the same episodes
+    give the same ``metrics`` (``*_mean`` keys); none of the tight ones succeeds and their seconds stop
+    where the test first fired. Returns both results and the tight MDP."""
+    def zero(obs, goal):
+        return np.zeros((len(obs), mdp.action_dim))
+    mdp = make_mdp()
+    ok = evaluate(mdp, zero, episodes)
+    mdp = make_mdp(termination_distance=tight)
+    bad = evaluate(mdp, zero, episodes)
+    assert ok["success_rate"] == 1.0 and bad["success_rate"] == 0.0
+    assert 0 < bad["seconds_mean"] < ok["seconds_mean"] == pytest.approx(seconds)
+    for m in metrics:
+        assert bad[f"{m}_mean"] == pytest.approx(ok[f"{m}_mean"], rel=1e-9)
+    assert mdp.task.cfg.early_termination  # training still ends an episode at the failure
+    return ok, bad, mdp

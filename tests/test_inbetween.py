@@ -15,7 +15,7 @@ from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
 from motok.errors import UserError
 from motok.sim.obs import Bodies
-from task_helpers import place, rz, task_mdp
+from task_helpers import place, played_to_the_end, rz, task_mdp
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -241,19 +241,10 @@ def test_evaluate_inbetween_on_pd_tracking(hum, lib):
 def test_evaluation_plays_failed_windows_to_their_end(hum, lib):
     """Table 2's errors are over whole windows: with a failure test that fires within a few frames
     (1 cm mean body distance), the same windows give the same errors as when nothing fails, every
-    episode is a failure, its seconds stop where the test first fired, and training's early
-    termination is back on afterwards."""
-    zero = lambda obs, goal: np.zeros((len(obs), mdp.action_dim))  # noqa: E731
-    mdp = _mdp(hum, lib, 2, seed=1)
-    ok = evaluate_inbetween(mdp, zero, 3)
-    mdp = _mdp(hum, lib, 2, seed=1, termination_distance=0.01)
-    bad = evaluate_inbetween(mdp, zero, 3)
-    assert ok["success_rate"] == 1.0 and bad["success_rate"] == 0.0
-    assert 0 < bad["seconds_mean"] < ok["seconds_mean"] == pytest.approx(17 / 30)
-    for m in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"):
-        for pre in ("", "keyframe_"):
-            assert bad[f"{pre}{m}_mean"] == pytest.approx(ok[f"{pre}{m}_mean"], rel=1e-9)
-    assert mdp.task.cfg.early_termination  # training still ends an episode at the failure
+    episode is a failure, and its seconds stop where the test first fired."""
+    _, _, mdp = played_to_the_end(evaluate_inbetween, lambda **kw: _mdp(hum, lib, 2, seed=1, **kw), 0.01,
+                                  [pre + m for m in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm")
+                                   for pre in ("", "keyframe_")], 17 / 30)
     mdp.reset()
     for _ in range(3):
         _, _, _, term, _, info = mdp.step(np.zeros((2, mdp.action_dim)))

@@ -6,8 +6,10 @@ slip of the simulated and reference feet (``motok.sim.soles``). Variants: ``base
 (N noslip iterations), ``fricF`` (sliding friction F on every geom), ``timeconstT`` (contact solref
 time constant T s), ``elliptic`` (elliptic friction cones, impratio 10), ``kvX`` (every PD damping
 times X), ``kpX`` (stiffness and damping times X), ``ramp`` (each control step's PD targets ramped
-from the previous step's over its substeps instead of held, on the rollout stepper) and ``rollout``
-(the rollout stepper holding them: the control for ``ramp``).
+from the previous step's over its substeps instead of held, on the rollout stepper), ``emaB`` (the
+PD targets low-passed from step to step, ``y_t = B a_t + (1 - B) y_(t-1)``, the action filter
+some character controllers train with) and ``rollout`` (the rollout stepper holding the targets:
+the control for ``ramp`` and ``emaB``).
 
     python scripts/sole_slip_variants.py --expert runs/expert_set2 -d runs/bandai2.h5 --split test \\
         --clips 'dataset-2_walk*' base noslip10 fric2 timeconst0.01 elliptic
@@ -48,13 +50,25 @@ class RampStepper(steppers.RolloutStepper):
         self._prev = target.copy()
 
 
+class FilterStepper(RampStepper):
+    """PD targets low-passed from one control step to the next (``beta`` on the new target), held
+    over the substeps; after a reset the filter starts from the joints' own angles."""
+
+    beta = 1.0
+
+    def _substep_ctrl(self, ctrl: np.ndarray) -> None:
+        self._prev = self.beta * np.asarray(ctrl, np.float64) + (1.0 - self.beta) * self._prev
+        self._ctrl[:] = self._prev[:, None]
+
+
 def apply(ctl, variant: str) -> None:
     cfg, model = ctl[0], ctl[1].model
     if variant == "base":
         return
-    if variant in ("ramp", "rollout"):
+    if variant in ("ramp", "rollout") or variant.startswith("ema"):
         cfg.env.stepper = "rollout"
-        steppers.RolloutStepper = RampStepper if variant == "ramp" else ROLLOUT
+        steppers.RolloutStepper = {"ramp": RampStepper, "rollout": ROLLOUT}.get(variant, FilterStepper)
+        FilterStepper.beta = float(variant[3:]) if variant.startswith("ema") else 1.0
         return
     if variant.startswith("kv"):
         model.actuator_biasprm[:, 2] *= float(variant[2:])
@@ -74,7 +88,7 @@ def apply(ctl, variant: str) -> None:
         model.opt.cone, model.opt.impratio = 1, 10.0
     else:
         raise SystemExit(f"unknown variant {variant!r} (base, noslipN, fricF, timeconstT, elliptic, kvX, kpX, "
-                         f"ramp, rollout)")
+                         f"ramp, emaB, rollout)")
 
 
 def clip_parser(doc: str) -> argparse.ArgumentParser:

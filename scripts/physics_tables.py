@@ -203,11 +203,13 @@ def t2p(R: Path) -> str:
     for name in ("generated_sim", "real_test_sim"):  # what `motok control track` wrote beside each
         t = load(K / f"{name}.track.json")
         if t is not None:
+            slip = t.get("sole_slip", {})  # reports before the sole slip have none
             rows.append([name, t["clips"], t["written"], pct(t["tracked_to_end"]), num(t["mpjpe_mm"]),
-                         num(t["g_mpjpe_mm"])])
+                         num(t["g_mpjpe_mm"])] + [num(slip.get(k, {}).get("sole_slip_cm_s"))
+                                                  for k in ("simulated", "reference")])
     if rows:
-        out.append(table(["tracked motion", "clips", "written", "tracked to the end", "MPJPE mm", "G-MPJPE mm"],
-                         rows))
+        out.append(table(["tracked motion", "clips", "written", "tracked to the end", "MPJPE mm", "G-MPJPE mm",
+                          "sole slip cm/s", "its reference's"], rows))
     return "\n\n".join(out)
 
 

@@ -252,6 +252,19 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
     assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
     assert "| prior | 2 |" in out and "| hybrid | 25.0 % |" in out
     assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % |  | 60.0 | 1 / 3 |" in out and "threshold 3.668" in out
+    kin = runs / "kinematic"  # text to physics: the t2m table as written, and each tracking's report
+    kin.mkdir()
+    (kin / "t2m-physics.md").write_text("| Motion | R@1 ↑ |\n|---|---|\n| generated_sim | 0.500±0.010 |\n")
+    (kin / "generated_sim.track.json").write_text(json.dumps({
+        "clips": 100, "written": 98, "tracked_to_end": 0.749, "mpjpe_mm": 52.2, "g_mpjpe_mm": 120.5,
+        "sole_slip": {"simulated": {"sole_slip_cm_s": 30.5}, "reference": {"sole_slip_cm_s": 18.1}}}))
+    (kin / "real_test_sim.track.json").write_text(json.dumps({  # written before the sole slip was reported
+        "clips": 427, "written": 427, "tracked_to_end": 0.916, "mpjpe_mm": 47.3, "g_mpjpe_mm": 100.0}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "| generated_sim | 0.500±0.010 |" in out
+    assert "| generated_sim | 100 | 98 | 74.9 % | 52.2 | 120.5 | 30.5 | 18.1 |" in out, out
+    assert "| real_test_sim | 427 | 427 | 91.6 % | 47.3 | 100.0 |  |  |" in out
 
 
 def test_the_orderings_are_read_from_the_outputs(tmp_path):

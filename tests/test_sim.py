@@ -8,6 +8,7 @@ from typer.testing import CliRunner
 
 import mujoco
 
+from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import HumanoidError, load_humanoid, to_mj
 from motok.sim.obs import TreeKinematics, observation
@@ -221,6 +222,30 @@ def test_physics_env_steps_pd_targets_and_contains_bad_ones(hum, lib, stepper):
         env.step(bad[:2])
     with pytest.raises(ValueError, match="nan_actions"):
         HumanoidEnv(hum, SimConfig(num_envs=1, nan_actions="ignore"))
+
+
+def test_target_filter_low_passes_the_pd_targets_and_restarts_at_a_reset(hum, lib):
+    """``target_filter`` b steps the filtered targets y_t = b a_t + (1 - b) y_(t-1), from the joints'
+    angles after every reset: bit for bit an unfiltered environment given y."""
+    g, b = np.array([10, 500]), 0.3
+    filt, plain, raw = (HumanoidEnv(hum, SimConfig(num_envs=2, target_filter=f)) for f in (b, 1.0, 1.0))
+    for e in (filt, plain, raw):
+        e.set_state(np.arange(2), lib.qpos[g], lib.qvel[g])
+    y = lib.qpos[g][:, filt.hinge_adr]
+    for t in range(3):
+        if t == 2:  # environment 1 starts again elsewhere: its filter with it
+            for e in (filt, plain, raw):
+                e.set_state([1], lib.qpos[[900]], lib.qvel[[900]])
+            y[1] = lib.qpos[900, filt.hinge_adr]
+        a = lib.qpos[g + 5 * t + 5][:, filt.hinge_adr]
+        y = b * a + (1 - b) * y
+        filt.step(a)
+        plain.step(y)
+        raw.step(a)
+        assert np.array_equal(filt.qpos, plain.qpos) and not np.allclose(filt.qpos, raw.qpos)
+    for bad in (0.0, 1.5):
+        with pytest.raises(UserError, match="target_filter"):
+            HumanoidEnv(hum, SimConfig(num_envs=1, target_filter=bad))
 
 
 # ----------------------------------------------------------------------------- commands

@@ -177,26 +177,28 @@ def test_the_on_device_path_steps_and_observes_without_the_host(hum, lib, warp):
     assert mine.shape == ref.shape == (3, 102) and np.abs(mine.numpy() - ref).max() < 1e-5
 
 
-def device_pair(hum, lib, n):
+def device_pair(hum, lib, n, target_filter=1.0):
     """The imitation MDP of ``n`` environments on Warp twice: host arrays, and on the device."""
     from motok.control.expert import imitation_mdp
     from motok.control.mdp.actions import ActionConfig
     from motok.control.tasks.imitation import ImitationTaskConfig
 
     tc, ac = ImitationTaskConfig(termination="mean"), ActionConfig(base="reference")
-    sim = SimConfig(num_envs=n, nthread=1, backend="warp")
+    sim = SimConfig(num_envs=n, nthread=1, backend="warp", target_filter=target_filter)
     return (imitation_mdp(hum, lib, sim, tc, ac, 0),
             imitation_mdp(hum, lib, replace(sim, on_device=True), tc, ac, 0))
 
 
-def test_the_on_device_imitation_mdp_equals_the_host_one(hum, lib, warp):
+@pytest.mark.parametrize("target_filter", [1.0, 0.5])
+def test_the_on_device_imitation_mdp_equals_the_host_one(hum, lib, warp, target_filter):
     """env.on_device: state, observation (Eq. 7), goal (Eq. 9), action map, reward (Eq. 10) and
     termination computed in torch where the state lives give the host path's numbers from the same
     starts and actions: the two differ by float32 against float64 arithmetic on the same float32
-    physics (measured 1e-5 after 20 steps; bounds 1e-3 and 1e-4), and the same steps end."""
+    physics (measured 1e-5 after 20 steps; bounds 1e-3 and 1e-4), and the same steps end; the PD
+    target filter too."""
     import torch
 
-    host, dev = device_pair(hum, lib, 3)
+    host, dev = device_pair(hum, lib, 3, target_filter)
     starts = dict(clips=[0, 1, 2], frames=[0, 5, 30])
     (oh, gh), (od, gd) = host.reset(**starts), dev.reset(**starts)
     assert isinstance(od, torch.Tensor) and od.dtype == torch.float32 and np.abs(od.numpy() - oh).max() < 1e-5

@@ -53,6 +53,10 @@ class SimConfig:
     # physics state is: torch tensors on MuJoCo Warp's device, with no host copy per step (docs/sim.md
     # "On the device"). C MuJoCo's state is host memory, where the rollout runs anyway: no effect there.
     on_device: bool = False
+    # PD targets low-passed from one control step to the next, y_t = b a_t + (1 - b) y_(t-1), the
+    # filter some character controllers train with against high-frequency chatter (docs/sim.md);
+    # after a reset it starts from the joints' angles. 1: each step's targets as given.
+    target_filter: float = 1.0
 
     def portable(self) -> "SimConfig":
         """C MuJoCo on the CPU, whatever backend and device the config says: how a loaded run's
@@ -83,6 +87,8 @@ class HumanoidEnv:
         m = self.hum.model
         if c.nan_actions not in ("raise", "terminate"):
             raise UserError(f"nan_actions must be 'raise' or 'terminate', not {c.nan_actions!r}")
+        if not 0.0 < float(c.target_filter) <= 1.0:
+            raise UserError(f"env.target_filter must be in (0, 1] (1: no filter), not {c.target_filter!r}")
         self.control_hz = float(c.control_hz or self.hum.control_hz)
         self.dt = 1.0 / self.control_hz
         self.substeps = max(1, int(round(self.dt / m.opt.timestep)))
@@ -110,6 +116,7 @@ class HumanoidEnv:
             self.ctrl_low, self.ctrl_high = like(st.qpos_t, self.ctrl_low), like(st.qpos_t, self.ctrl_high)
         self.bodies: Bodies = self._bodies()
         self._obs = observation(self.qpos, self.qvel, self.bodies, self.end_effectors)
+        self._filtered = copy(self.qpos[:, self.hinge_adr]) if c.target_filter < 1.0 else None
         self._worker = None  # a one-thread executor, created by the first threaded launch
         self._pending = None
 
@@ -157,6 +164,7 @@ class HumanoidEnv:
             qpos = np.concatenate([np.broadcast_to(qpos, (len(ids), self.nq)), self.stepper.qpos[ids, self.nq:]], 1)
             qvel = np.concatenate([np.broadcast_to(qvel, (len(ids), self.nv)), self.stepper.qvel[ids, self.nv:]], 1)
         self.stepper.set_state(ids, qpos, qvel)
+        self._restart_filter(ids)
         if len(ids) == self.num_envs:
             sim = self.bodies = self.stepper.bodies()
         else:
@@ -172,6 +180,7 @@ class HumanoidEnv:
             qpos = torch.cat([qpos.expand(len(ids), self.nq), st.qpos_t[ids, self.nq:]], 1)
             qvel = torch.cat([qvel.expand(len(ids), self.nv), st.qvel_t[ids, self.nv:]], 1)
         st.set_state_tensor(ids, qpos, qvel)
+        self._restart_filter(ids)
         sim = st.bodies_tensor(ids)
         self.bodies.put(ids, sim)
         self._obs[ids] = observation(self.qpos[ids], self.qvel[ids], sim, self.end_effectors)
@@ -192,11 +201,19 @@ class HumanoidEnv:
         q = x.where(invalid[:, None], self.qpos[:, self.hinge_adr], q)
         return x.clip(q, self.ctrl_low, self.ctrl_high), invalid
 
+    def _restart_filter(self, ids) -> None:
+        if self._filtered is not None:
+            self._filtered[ids] = self.qpos[ids][:, self.hinge_adr]
+
     def launch(self, targets: np.ndarray, threaded: bool = True) -> None:
         """Start one control step with PD targets ``(N, nu)``; :meth:`finish` completes it."""
         if self._pending is not None:
             raise RuntimeError("finish() the step in flight before launching another")
         ctrl, invalid = self._checked(targets)
+        if self._filtered is not None:
+            b = float(self.cfg.target_filter)
+            ctrl = b * ctrl + (1.0 - b) * self._filtered
+            self._filtered = copy(ctrl)
         if self.on_device:  # a device queues the work by itself: no thread
             self._pending = (self.stepper.step_tensor(ctrl), invalid)
         elif threaded:

@@ -238,6 +238,30 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     assert (tmp_path / "straight" / "perturb.json").read_text() == before  # the paper's result stays
 
 
+def test_the_world_of_the_expert_is_the_world_of_its_prior_and_tasks(hum, walk_lib, small_dataset, tmp_path):
+    """A PD-target filter an expert was trained through is its students' and their task policies'
+    world: inherited when the recipe leaves it unset (and played so by the evaluations, which read
+    the saved config), refused when the recipe sets another."""
+    from motok.control.distill import DistillConfig, load_prior
+    from motok.control.distill import train as distill
+    from motok.errors import UserError
+    prior = tiny_prior_bundle(tmp_path, hum, walk_lib, small_dataset, target_filter=0.5)
+    assert load_prior(prior)[0].env.target_filter == 0.5
+    cfg = small_cfg(iterations=1, save_every=1000, eval_every=0)
+    cfg.env.num_envs = 4
+    cfg.ppo = replace(cfg.ppo, horizon=8, minibatch_size=16, epochs=1)
+    train_from_prior(replace(cfg), prior, tmp_path / "nav", codebooks=2)
+    assert load_task_run(tmp_path / "nav")[0].env.target_filter == 0.5
+    cfg.env.target_filter = 1.0
+    with pytest.raises(UserError, match=r"target_filter=1 but the prior .* acts through env.target_filter=0.5"):
+        train_from_prior(replace(cfg), prior, tmp_path / "nav-other", codebooks=2)
+    dcfg = DistillConfig(seed=0, iterations=1, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
+    dcfg.env.num_envs, dcfg.env.nthread, dcfg.env.target_filter = 4, 1, 0.8
+    dcfg.prior = small_prior_config("hybrid")
+    with pytest.raises(UserError, match=r"target_filter=0.8 but the expert"):
+        distill(dcfg, tmp_path / "prior-other", tmp_path / "expert", walk_lib, data=small_dataset)
+
+
 def test_in_betweening_is_evaluated_on_the_clips_of_another_split(tiny_prior, small_dataset, tmp_path):
     """Tables 2-3 read the test clips of a policy trained on others: `--data --split` gives the
     windows, and the result is written as eval_TASK_SPLIT.json with the split in its provenance."""

@@ -45,10 +45,10 @@ def small_prior_config(kind: str):
                        num_codebooks=4, codebook_size=16, vq_codebook_size=32, kmeans_init=False)
 
 
-def tiny_prior_bundle(root, hum, lib, data, kind: str = "hybrid"):
+def tiny_prior_bundle(root, hum, lib, data, kind: str = "hybrid", target_filter: float | None = None):
     """A ``kind`` prior (4 codebooks of 16 codes when residual), distilled for 2 iterations from a
-    1-iteration expert: untrained, but a real bundle with every part its readers need. Returns
-    the prior's folder (``root/prior``; the expert is ``root/expert``)."""
+    1-iteration expert (trained through ``target_filter``): untrained, but a real bundle with every
+    part its readers need. Returns the prior's folder (``root/prior``; the expert is ``root/expert``)."""
     from motok.control.distill import DistillConfig
     from motok.control.distill import train as distill
     from motok.control.expert import ExpertConfig
@@ -60,6 +60,7 @@ def tiny_prior_bundle(root, hum, lib, data, kind: str = "hybrid"):
     ecfg.net.latent_dim = 8
     ecfg.amp.enabled = False
     ecfg.action.base, ecfg.task.termination = "reference", "mean"
+    ecfg.env.target_filter = target_filter
     train_expert(ecfg, root / "expert", hum, lib, data=data)
     cfg = DistillConfig(seed=0, iterations=2, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
     cfg.env.num_envs, cfg.env.nthread = 4, 1

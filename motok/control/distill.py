@@ -263,6 +263,7 @@ def train(cfg: DistillConfig, run, expert_run, lib: ReferenceLibrary, *, resume:
           until: int | None = None, data=None, command: str | None = None) -> dict:
     """Distil the expert in ``expert_run`` into a ``cfg.prior.kind`` prior in ``run`` on the clips of ``lib``."""
     ecfg, hum, expert, _ = load_expert(expert_run)
+    cfg.env.same_world(ecfg.env, f"the expert {expert_run}")
     names = subset(lib.names, cfg.eval_per_group) if cfg.eval_per_group else list(lib.names)
     ids = np.array([lib.index(x) for x in names])
 

@@ -203,6 +203,7 @@ def train(cfg: TaskTrainConfig, run, prior_run, lib: ReferenceLibrary, *, resume
     cfg.check()
     if cfg.env.control_hz is None:
         cfg.env.control_hz = pcfg.env.control_hz
+    cfg.env.same_world(pcfg.env, f"the prior {prior_run}")
 
     def eval_hook(tr: TaskTrainer) -> dict:
         res = evaluate_policy(cfg, hum, lib, model, pcfg.action.scale, tr.ac, cfg.eval_episodes, cfg.seed + 12345)

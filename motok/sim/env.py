@@ -55,8 +55,24 @@ class SimConfig:
     on_device: bool = False
     # PD targets low-passed from one control step to the next, y_t = b a_t + (1 - b) y_(t-1), the
     # filter some character controllers train with against high-frequency chatter (docs/sim.md);
-    # after a reset it starts from the joints' angles. 1: each step's targets as given.
-    target_filter: float = 1.0
+    # after a reset it starts from the joints' angles. 1: each step's targets as given; None: the
+    # world of the controller this one is trained from or over (same_world), 1 for an expert.
+    target_filter: float | None = None
+
+    @property
+    def filter_b(self) -> float:
+        return 1.0 if self.target_filter is None else float(self.target_filter)
+
+    def same_world(self, parent: "SimConfig", who: str) -> "SimConfig":
+        """Act in the world ``parent`` was trained in (a student in its teacher's, a task policy
+        in its prior's): its PD-target filter unless this config sets one, and a different one
+        refused, since the parent's actions mean other motion through another filter."""
+        if self.target_filter is None:
+            self.target_filter = parent.filter_b
+        elif self.filter_b != parent.filter_b:
+            raise UserError(f"env.target_filter={self.filter_b:g} but {who} acts through env.target_filter="
+                            f"{parent.filter_b:g}: leave it unset to act in the same world")
+        return self
 
     def portable(self) -> "SimConfig":
         """C MuJoCo on the CPU, whatever backend and device the config says: how a loaded run's
@@ -87,7 +103,7 @@ class HumanoidEnv:
         m = self.hum.model
         if c.nan_actions not in ("raise", "terminate"):
             raise UserError(f"nan_actions must be 'raise' or 'terminate', not {c.nan_actions!r}")
-        if not 0.0 < float(c.target_filter) <= 1.0:
+        if not 0.0 < c.filter_b <= 1.0:
             raise UserError(f"env.target_filter must be in (0, 1] (1: no filter), not {c.target_filter!r}")
         self.control_hz = float(c.control_hz or self.hum.control_hz)
         self.dt = 1.0 / self.control_hz
@@ -116,7 +132,7 @@ class HumanoidEnv:
             self.ctrl_low, self.ctrl_high = like(st.qpos_t, self.ctrl_low), like(st.qpos_t, self.ctrl_high)
         self.bodies: Bodies = self._bodies()
         self._obs = observation(self.qpos, self.qvel, self.bodies, self.end_effectors)
-        self._filtered = copy(self.qpos[:, self.hinge_adr]) if c.target_filter < 1.0 else None
+        self._filtered = copy(self.qpos[:, self.hinge_adr]) if c.filter_b < 1.0 else None
         self._worker = None  # a one-thread executor, created by the first threaded launch
         self._pending = None
 
@@ -211,7 +227,7 @@ class HumanoidEnv:
             raise RuntimeError("finish() the step in flight before launching another")
         ctrl, invalid = self._checked(targets)
         if self._filtered is not None:
-            b = float(self.cfg.target_filter)
+            b = self.cfg.filter_b
             ctrl = b * ctrl + (1.0 - b) * self._filtered
             self._filtered = copy(ctrl)
         if self.on_device:  # a device queues the work by itself: no thread

@@ -7,9 +7,8 @@ slip of the simulated and reference feet (``motok.sim.soles``). Variants: ``base
 time constant T s), ``elliptic`` (elliptic friction cones, impratio 10), ``kvX`` (every PD damping
 times X), ``kpX`` (stiffness and damping times X), ``ramp`` (each control step's PD targets ramped
 from the previous step's over its substeps instead of held, on the rollout stepper), ``emaB`` (the
-PD targets low-passed from step to step, ``y_t = B a_t + (1 - B) y_(t-1)``, the action filter
-some character controllers train with) and ``rollout`` (the rollout stepper holding the targets:
-the control for ``ramp`` and ``emaB``).
+PD targets low-passed from step to step, ``env.target_filter`` B) and ``rollout`` (the rollout
+stepper holding the targets: the control for ``ramp``).
 
     python scripts/sole_slip_variants.py --expert runs/expert_set2 -d runs/bandai2.h5 --split test \\
         --clips 'dataset-2_walk*' base noslip10 fric2 timeconst0.01 elliptic
@@ -50,25 +49,16 @@ class RampStepper(steppers.RolloutStepper):
         self._prev = target.copy()
 
 
-class FilterStepper(RampStepper):
-    """PD targets low-passed from one control step to the next (``beta`` on the new target), held
-    over the substeps; after a reset the filter starts from the joints' own angles."""
-
-    beta = 1.0
-
-    def _substep_ctrl(self, ctrl: np.ndarray) -> None:
-        self._prev = self.beta * np.asarray(ctrl, np.float64) + (1.0 - self.beta) * self._prev
-        self._ctrl[:] = self._prev[:, None]
-
-
 def apply(ctl, variant: str) -> None:
     cfg, model = ctl[0], ctl[1].model
     if variant == "base":
         return
-    if variant in ("ramp", "rollout") or variant.startswith("ema"):
+    if variant in ("ramp", "rollout"):
         cfg.env.stepper = "rollout"
-        steppers.RolloutStepper = {"ramp": RampStepper, "rollout": ROLLOUT}.get(variant, FilterStepper)
-        FilterStepper.beta = float(variant[3:]) if variant.startswith("ema") else 1.0
+        steppers.RolloutStepper = RampStepper if variant == "ramp" else ROLLOUT
+        return
+    if variant.startswith("ema"):  # the environment's own filter (env.target_filter), zero-shot
+        cfg.env.target_filter = float(variant[3:])
         return
     if variant.startswith("kv"):
         model.actuator_biasprm[:, 2] *= float(variant[2:])

@@ -72,13 +72,13 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
     from motok.tokenizer.train import load_tokenizer
     model, meta = load_tokenizer(tokenizer)
     m = num_codebooks or model.num_codebooks
-    clips, caps, names, err = [], [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
+    clips, caps, kept, err = [], [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
     with torch.no_grad():
         for k, (c, cap, j) in enumerate(zip(ref.clips, ref.captions, ref.joints)):
             T = len(c) // model.rate * model.rate
             if T < UNIT:
                 continue
-            names.append(ref.names[k] if ref.names else str(k))
+            kept.append(k)
             codes = model.encode_features(torch.from_numpy(np.asarray(c[:T]))[None], m)[..., :m]
             pred = model.decode_features(codes, m)[0].numpy()
             clips.append(pred)
@@ -91,7 +91,8 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
     recon = {"mpjpe_mm": float(np.concatenate(err["mpjpe"]).mean()),
              "mpjpe_global_mm": float(np.concatenate(err["mpjpe_global"]).mean()),
              "accel_error_mm": float(np.concatenate(err["accel"]).mean())}
-    return MotionSet(f"reconstruction ({Path(tokenizer).name})", clips, caps, names=names,
+    return MotionSet(f"reconstruction ({Path(tokenizer).name})", clips, caps,
+                     names=None if ref.names is None else [ref.names[k] for k in kept],
                      extra={"num_joints": num_joints, "recon": recon, "tokenizer": str(tokenizer),
                             "tokenizer_sha256": meta["model_sha256"]})
 
@@ -101,7 +102,8 @@ def motion_set(path: Path, name: str | None = None, split: str | None = None) ->
     labels per caption) feed MModality; ``sample`` labels spread the others over the repeats.
 
     With ``split``, clips that carry another split are left out (a tracked dataset keeps its
-    clips' splits); clips in no split (:data:`~motok.data.dataset.NO_SPLIT`: GPT samples) stay. How many were left out is in ``extra``."""
+    clips' splits); clips in no split (:data:`~motok.data.dataset.NO_SPLIT`: GPT samples) stay.
+    How many were left out is in ``extra``."""
     with MotionFile(path) as mf:
         sd = load_split(mf, None)
         if not sd.clips:
@@ -146,28 +148,17 @@ def common_clips(rows: list[MotionSet]) -> list[MotionSet]:
     name keeps every clip. MModality clips are left as they are (it compares a row with itself).
     How many clips each row left out is in ``extra["common_clips_left_out"]``."""
     names = [set(r.names or ()) for r in rows]
-    group = list(range(len(rows)))  # union-find over rows by shared names
-
-    def root(i):
-        while group[i] != i:
-            group[i] = group[group[i]]
-            i = group[i]
-        return i
+    groups: list[list[int]] = []  # rows joined by shared names, transitively
     for i in range(len(rows)):
-        for j in range(i):
-            if names[i] & names[j]:
-                group[root(i)] = root(j)
-    shared: dict[int, set] = {}
-    for i in range(len(rows)):
-        r = root(i)
-        shared[r] = names[i] if r not in shared else shared[r] & names[i]
+        touching = [g for g in groups if any(names[i] & names[j] for j in g)]
+        groups = [g for g in groups if g not in touching] + [sum(touching, []) + [i]]
+    shared = {i: set.intersection(*(names[j] for j in g)) for g in groups if len(g) > 1 for i in g}
     out = []
     for i, row in enumerate(rows):
-        members = sum(root(j) == root(i) for j in range(len(rows)))
-        if members < 2:
+        if i not in shared:
             out.append(row)
             continue
-        keep = [k for k, n in enumerate(row.names) if n in shared[root(i)]]
+        keep = [k for k, n in enumerate(row.names) if n in shared[i]]
         if len(keep) < 2:
             raise EvaluatorError(f"{row.name}: {len(keep)} clip(s) in common with the rows that share its clip "
                                  f"names; --common-clips needs 2+")

@@ -40,7 +40,9 @@ SPEED_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, np.inf)  # m/s
 
 
 class Recorder:
-    """Wraps a stepper: keeps (qpos, qvel, ctrl) of every environment before each control step."""
+    """Wraps a stepper: keeps every environment's (qpos, qvel) before each control step and the
+    controls of its substeps as the stepper applied them (held or ramped: the last is the step's
+    PD target either way)."""
 
     def __init__(self, stepper):
         self.inner, self.steps = stepper, []
@@ -51,8 +53,7 @@ class Recorder:
     def step(self, ctrl):
         qpos, qvel = self.inner.qpos.copy(), self.inner.qvel.copy()
         failed = self.inner.step(ctrl)
-        # the controls of every substep as the rollout stepper applied them (held, or ramped)
-        self.steps.append((qpos, qvel, np.array(ctrl, copy=True), self.inner._ctrl.copy()))
+        self.steps.append((qpos, qvel, self.inner._ctrl.copy()))
         return failed
 
 
@@ -102,7 +103,7 @@ def main() -> None:
     touching = {}  # env -> per substep, which foot geoms touch the floor
     alive = out["alive"]
     steps = env.stepper.steps
-    for t, (qpos, qvel, _, sub) in enumerate(steps):
+    for t, (qpos, qvel, sub) in enumerate(steps):
         for k in np.flatnonzero(alive[:, t + 1] & alive[:, t]):
             d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[k], qvel[k], sub[k, 0]
             d.qacc_warmstart[:] = 0
@@ -147,10 +148,10 @@ def chatter(m, lib, steps, alive) -> dict:
     reference's joints, by joint group (over the steps where the clip is still tracked)."""
     names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(m.nu)]
     driven = m.jnt_qposadr[m.actuator_trnid[:, 0]]
-    target = np.stack([s[2] for s in steps])  # (T, N, nu)
+    target = np.stack([s[2][:, -1] for s in steps])  # (T, N, nu): the last substep's control
     q = np.stack([s[0] for s in steps])[..., driven]
     T = len(steps)
-    ok = np.stack([alive[:, t] & alive[:, t + 1] & alive[:, t + 2] for t in range(T - 1)])  # (T-1, N)
+    ok = (alive[:, :T - 1] & alive[:, 1:T] & alive[:, 2:T + 1]).T  # (T-1, N): both steps still tracked
     d_target, d_q = np.diff(target, axis=0)[ok], np.diff(q, axis=0)[ok]
     inside = np.ones(len(lib.qpos) - 1, bool)
     inside[lib.starts[1:-1] - 1] = False  # no step across two clips

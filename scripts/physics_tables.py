@@ -260,7 +260,8 @@ def status(R: Path) -> str:
         seen = ", ".join(f"{k.removeprefix('eval_')} {v:.3g} (it {next(r['iteration'] for r in reversed(m) if k in r)})"
                          for k, v in evals.items())
         files = ", ".join(sorted(p.name for p in run.parent.glob("*.json") if p.name != "bundle.json"))
-        rows.append([str(run.parent.relative_to(R)), eta(last, m[-50:], target(run.parent)),
+        # the pace over 500 records: one that ends at an evaluation (its time is in wall_s) would skew 50
+        rows.append([str(run.parent.relative_to(R)), eta(last, m[-500:], target(run.parent)),
                      f"{last.get('samples', 0) / 1e6:.1f} M",
                      f"{last.get('wall_s', 0) / 3600:.2f} h", f"{statistics.median(rate):,.0f}" if rate else "",
                      seen, files])

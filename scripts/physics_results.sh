@@ -8,6 +8,8 @@
 #   scripts/physics_results.sh priors tasks    # only these stages (names below)
 #   kill -TERM PID                             # the training under way stops at its next checkpoint,
 #                                              # and the queue stops after it
+#   STOP_AT=19:40 scripts/physics_results.sh   # the same TERM, sent by the queue to itself at that time
+#                                              # (anything `date -d` reads: "19:40", "+150 min")
 #   mkdir -p runs/dry && ln -s ../bandai2.h5 runs/dry/ && R=runs/dry EXPERT_IT=40 PRIOR_IT=20 TASK_IT=10 \
 #     GEN_N=4 GEN_SECONDS=3 EVAL_N=8 BALLS_N=4 KIN_IT=20 T2M_RECIPE=recipes/eval/t2m_toy.yaml \
 #     scripts/physics_results.sh                 # every stage at toy size (~35 min on 2 cores)
@@ -99,6 +101,7 @@ log() { printf '[%s] %s\n' "$(date -u +%H:%M:%S)" "$*"; }
 # it fails or was asked to stop.
 run() {
     local name=$1; shift
+    if [ "$stopped" = 1 ]; then log "stopped on request before $name"; exit 0; fi  # a TERM between two commands
     log "$name: $*"
     nice -n "$NICE" "$@" >> "$R/logs/$name.log" 2>&1 &
     child=$!
@@ -273,12 +276,30 @@ stage_plots() {
 
 ALL=(data expert priors prioreval nav tasks taskeval t2p plots)
 
+# STOP_AT: the queue sends itself the TERM of `kill -TERM` at that time (a session's end): the
+# training under way stops at its next checkpoint and the queue after it. The timer goes with the
+# queue (and its sleep with the timer), so an early finish leaves nothing behind.
+arm_stop() {
+    [ -n "${STOP_AT:-}" ] || return 0
+    local at now
+    at=$(date -d "$STOP_AT" +%s 2>/dev/null) ||
+        { echo "STOP_AT=$STOP_AT: not a time date -d reads (e.g. 19:40 or '+150 min')" >&2; exit 2; }
+    now=$(date +%s)
+    [ "$at" -gt "$now" ] || { echo "STOP_AT=$STOP_AT ($(date -u -d "@$at" +%H:%M:%S) UTC) is not in the future" >&2; exit 2; }
+    log "stopping itself at $(date -u -d "@$at" +%H:%M:%S) UTC (STOP_AT=$STOP_AT)"
+    # shellcheck disable=SC2016  # $s is the timer's own variable
+    ( trap 'kill "$s" 2>/dev/null; wait "$s"; exit 0' TERM; sleep $((at - now)) & s=$!; wait "$s"; kill -TERM $$ ) >/dev/null 2>&1 &
+    timer=$!
+    trap 'rc=$?; kill "$timer" 2>/dev/null || true; exit "$rc"' EXIT  # the queue's own status (set -e: a gone timer's kill fails)
+}
+
 main() {
     local stages=("$@") s
     [ ${#stages[@]} -gt 0 ] || stages=("${ALL[@]}")
     for s in "${stages[@]}"; do
         case " ${ALL[*]} " in *" $s "*) ;; *) echo "unknown stage '$s' (expected one of: ${ALL[*]})" >&2; exit 2 ;; esac
     done
+    arm_stop
     for s in "${stages[@]}"; do
         log "stage $s"
         "stage_$s"

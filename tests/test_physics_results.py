@@ -340,3 +340,37 @@ def test_the_status_says_where_each_run_stands(tmp_path):
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs), "--status"], capture_output=True,
                          text=True, timeout=60).stdout
     assert "| expert_set2 | 3 / 3 (done) |" in out
+
+
+def test_stop_at_stops_the_queue_after_the_command_under_way(tmp_path):
+    """STOP_AT: the queue sends itself kill -TERM's signal at that time; the command under way
+    gets it (a training stops at its next checkpoint) and nothing after it starts."""
+    record = tmp_path / "argv.jsonl"
+    shim = tmp_path / "slow.py"
+    shim.write_text(f"import json, sys, time\nopen({str(record)!r}, 'a').write(json.dumps(sys.argv[1:]) + '\\n')\n"
+                    "time.sleep(4)\n")
+    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": f"{sys.executable} {shim}", "STOP_AT": "+1 sec"}
+    p = subprocess.run(["bash", str(SCRIPT), "data", "expert"], env=env, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "stopping itself at" in p.stdout and "stopped on request after preprocess" in p.stdout
+    assert [json.loads(line)[0] for line in record.read_text().splitlines()] == ["preprocess"]
+
+
+def test_stop_at_refuses_a_time_past_or_unreadable(tmp_path):
+    for bad, said in (("-1 min", "is not in the future"), ("half past never", "not a time date -d reads")):
+        env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": "false", "STOP_AT": bad}
+        p = subprocess.run(["bash", str(SCRIPT), "data"], env=env, capture_output=True, text=True, timeout=60)
+        assert p.returncode == 2 and said in p.stderr and "stage data" not in p.stdout, (bad, p.stdout, p.stderr)
+
+
+def test_a_queue_that_ends_before_stop_at_takes_its_timer_along(tmp_path):
+    cmds = queue(tmp_path, "data", env={"STOP_AT": "+1 hour"})  # returns: no timer holds the output open
+    assert [a[0] for a in cmds] == ["preprocess"]
+
+
+def test_a_failing_command_under_stop_at_keeps_its_status(tmp_path):
+    shim = tmp_path / "fail.py"
+    shim.write_text("import sys\nsys.exit(3)\n")
+    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": f"{sys.executable} {shim}", "STOP_AT": "+1 hour"}
+    p = subprocess.run(["bash", str(SCRIPT), "expert"], env=env, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 3 and "expert_set2 failed (exit 3)" in p.stdout

@@ -288,7 +288,7 @@ arm_stop() {
     [ "$at" -gt "$now" ] || { echo "STOP_AT=$STOP_AT ($(date -u -d "@$at" +%H:%M:%S) UTC) is not in the future" >&2; exit 2; }
     log "stopping itself at $(date -u -d "@$at" +%H:%M:%S) UTC (STOP_AT=$STOP_AT)"
     # shellcheck disable=SC2016  # $s is the timer's own variable
-    ( trap 'kill "$s" 2>/dev/null; wait "$s"; exit 0' TERM; sleep $((at - now)) & s=$!; wait "$s"; kill -TERM $$ ) >/dev/null 2>&1 &
+    ( trap 'kill "$s" 2>/dev/null; wait "$s"; exit 0' TERM; sleep $((at - now)) & s=$!; wait "$s"; kill -TERM $$ ) &
     timer=$!
     trap 'rc=$?; kill "$timer" 2>/dev/null || true; exit "$rc"' EXIT  # the queue's own status (set -e: a gone timer's kill fails)
 }

@@ -348,8 +348,8 @@ def test_stop_at_stops_the_queue_after_the_command_under_way(tmp_path):
     record = tmp_path / "argv.jsonl"
     shim = tmp_path / "slow.py"
     shim.write_text(f"import json, sys, time\nopen({str(record)!r}, 'a').write(json.dumps(sys.argv[1:]) + '\\n')\n"
-                    "time.sleep(4)\n")
-    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": f"{sys.executable} {shim}", "STOP_AT": "+1 sec"}
+                    "time.sleep(8)\n")
+    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": f"{sys.executable} {shim}", "STOP_AT": "+2 sec"}
     p = subprocess.run(["bash", str(SCRIPT), "data", "expert"], env=env, capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stdout + p.stderr
     assert "stopping itself at" in p.stdout and "stopped on request after preprocess" in p.stdout
@@ -364,7 +364,9 @@ def test_stop_at_refuses_a_time_past_or_unreadable(tmp_path):
 
 
 def test_a_queue_that_ends_before_stop_at_takes_its_timer_along(tmp_path):
-    cmds = queue(tmp_path, "data", env={"STOP_AT": "+1 hour"})  # returns: no timer holds the output open
+    # the timer and its sleep share the queue's output: one left behind would hold it open for the
+    # hour, and queue() would time out instead of returning
+    cmds = queue(tmp_path, "data", env={"STOP_AT": "+1 hour"})
     assert [a[0] for a in cmds] == ["preprocess"]
 
 

@@ -336,6 +336,43 @@ def test_common_clips_scores_rows_on_the_clips_they_share(tiny_evaluator, labell
     assert real["motions"] == len(test) and trk["motions"] == len(kept)
 
 
+def test_tracked_to_end_keeps_the_clips_played_through(tiny_evaluator, labelled_dataset, tmp_path):
+    """--tracked-to-end: a tracked row keeps the clips its `tracked_to_end` label says were played to
+    the end, exactly as if only those had been written; with --common-clips the real row follows;
+    clips without the label stay, and a flag that finds no tracked file is refused."""
+    from motok.artifacts import Provenance
+    from motok.data.dataset import TRACKED_TO_END, MotionFile, write_motion
+    from motok.eval.evaluator import EvaluatorError
+    from motok.eval.report import T2MConfig, markdown, t2m
+    with MotionFile(labelled_dataset) as mf:
+        test = [mf.clip(i) for i in mf.split_indices("test") if mf.captions(i)]
+        for k, c in enumerate(test):
+            c.labels = {**c.labels, TRACKED_TO_END: k % 5 != 2}
+        ended = [c for c in test if c.labels[TRACKED_TO_END]]
+        for path, clips in (("tracked.h5", test), ("ended.h5", ended)):
+            write_motion(tmp_path / path, "motion", Provenance("pytest", {}), clips, mf.skeleton, mf.offsets, mf.fps,
+                         False)
+    n_failed = len(test) - len(ended)
+    cfg = T2MConfig(repeats=2, physical=False, common_clips=True, tracked_to_end=True)
+    rep = t2m(tiny_evaluator[0], labelled_dataset, cfg, motions=[tmp_path / "tracked.h5"])
+    real, trk = rep["rows"]
+    assert n_failed > 0 and trk["motions"] == real["motions"] == len(ended)
+    assert trk["not_tracked_to_end_left_out"] == n_failed and trk["tracked_clips"] == len(test)
+    assert real["common_clips_left_out"] == n_failed
+    _, alone = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=2, physical=False, common_clips=True),
+                   motions=[tmp_path / "ended.h5"])["rows"]  # in the same place: a row's draws follow its position
+    assert alone["metrics"] == trk["metrics"] and alone["repeats"] == trk["repeats"]
+    assert f"tracked: {n_failed} clip(s) left out that the tracking played only to its failure" in markdown(rep)
+    # without the flag the failed clips count
+    (everything,) = t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=1, physical=False),
+                        motions=[tmp_path / "tracked.h5"], real=False)["rows"]
+    assert everything["motions"] == len(test) and "not_tracked_to_end_left_out" not in everything
+    plain = _motion_copy(labelled_dataset, tmp_path / "plain.h5", noise=0.1)
+    with pytest.raises(EvaluatorError, match="tracked-to-end: no --motions file"):
+        t2m(tiny_evaluator[0], labelled_dataset, T2MConfig(repeats=1, physical=False, tracked_to_end=True),
+            motions=[plain])
+
+
 def _wrongly_captioned(src: Path, out: Path) -> Path:
     """The test clips unchanged, each carrying the captions of a clip of another label."""
     from motok.artifacts import Provenance
@@ -531,6 +568,8 @@ def test_cli_t2m_fid_alias_recon_and_physical(tiny_evaluator, labelled_dataset, 
     r = runner.invoke(app, base + ["--common-clips", "--json"])  # gen holds every test clip: nothing left out
     assert r.exit_code == 0 and json.loads(r.output)["config"]["common_clips"] is True, r.output
     assert [x["common_clips_left_out"] for x in json.loads(r.output)["rows"]] == [0, 0]
+    r = runner.invoke(app, base + ["--tracked-to-end"])  # gen was not written by `control track`
+    assert r.exit_code == 2 and "no --motions file holds clips written by" in r.output, r.output
     bad = runner.invoke(app, ["eval", "t2m", "-e", str(tmp_path / "nope"), "--data", str(labelled_dataset)])
     assert bad.exit_code == 2 and "bundle" in bad.output
     bad = runner.invoke(app, ["eval", "train-evaluator", "--data", str(labelled_dataset), "-o", str(tmp_path / "e"),

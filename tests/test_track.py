@@ -53,6 +53,9 @@ def test_tracked_clips_follow_their_reference_and_round_trip(pd_controller, smal
             assert abs(s.num_frames - r["seconds"] * sim.fps) <= 2 and s.features.shape[1] == 12 * 21 - 1
             g = ref.clip(name)
             assert s.split == g.split and s.captions == g.captions
+            # its reference's labels, and how far it was played (for `eval t2m --tracked-to-end`)
+            assert s.labels == {**g.labels, "tracked_to_end": r["tracked_to_end"],
+                                "tracked_seconds": pytest.approx(r["seconds"])}
             # written joints against the reference over the frames played: close to the error the
             # tracking measured at the control rate (both root-relative)
             n = min(s.num_frames, g.num_frames)

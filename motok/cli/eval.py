@@ -54,6 +54,9 @@ def _t2m_command(
     no_real: bool = typer.Option(False, "--no-real", help="Skip the real-motion row."),
     common: bool = typer.Option(False, "--common-clips", help="Rows that hold clips of the same names (a tracked "
                                 "file and what it tracked) are scored on the names all of them hold."),
+    to_end: bool = typer.Option(False, "--tracked-to-end", help="--motions rows written by `control track` keep "
+                                "the clips played to their end; with --common-clips, the rows sharing their "
+                                "clips follow."),
     save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples here (.h5).",
                                                    suffixes=H5, required=False),
     outs: list[Path] = output_option(help="Write the report: the full report to a .json, the table to a .md "
@@ -69,7 +72,7 @@ def _t2m_command(
         fail("-o takes at most one .json and one .md")
     flags = {"split": split, "repeats": repeats, "captions": captions}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
-    overrides += ["gt_length=true"] * gt_length + ["common_clips=true"] * common
+    overrides += ["gt_length=true"] * gt_length + ["common_clips=true"] * common + ["tracked_to_end=true"] * to_end
     cfg = run(load_config, T2MConfig, recipe, overrides)
     rep = run(t2m, evaluator, data, cfg, tokenizer=tokenizer, gpt=gpt, motions=motions,
               save_generated=save_generated, real=not no_real)
@@ -210,6 +213,9 @@ def labels_command(
     guidance: Optional[float] = typer.Option(None, "--guidance", help="CFG scale with --gpt (default: the run's)."),
     snap: Optional[int] = typer.Option(None, "--snap", help="With --gpt: condition new sentences on their K nearest "
                                        "training captions (0 = off; default: the run's)."),
+    to_end: bool = typer.Option(False, "--tracked-to-end", help="--motions rows written by `control track` keep "
+                                "the clips played to their end; with --common-clips, the rows sharing their "
+                                "clips follow."),
     save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples (.h5).",
                                                    suffixes=H5, required=False),
     out: Optional[Path] = output_option(help="Write the report (.json).", suffixes=(".json",), required=False),

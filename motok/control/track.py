@@ -5,6 +5,7 @@ imitation task; a controller (the expert, or a distilled prior's posterior and d
 tracks every clip from its first frame in MuJoCo until the clip ends or the tracking fails (the
 controller's own failure test); the simulated bodies are written back as a ``motion`` artifact at
 the motion's frame rate, so ``motok eval``, ``render`` and ``export bvh`` read it like any other.
+Each written clip keeps its reference's labels and adds ``tracked_to_end`` and ``tracked_seconds``.
 
 **Start state.** Generated motion starts wherever the generator put it: above the floor, or with
 feet through it. Each clip is moved vertically, as a whole, so that its lowest joint over the
@@ -39,7 +40,7 @@ import numpy as np
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
 from motok.control.evaluate import clip_slip, play, slip_report
-from motok.data.dataset import Clip, MotionFile, write_motion
+from motok.data.dataset import TRACKED_TO_END, Clip, MotionFile, write_motion
 from motok.errors import UserError
 from motok.eval.metrics import mpjpe
 from motok.features.humanml3d import extract_features
@@ -150,8 +151,11 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
                                      reference_sole_slip_cm_s=s_ref.result()["sole_slip_cm_s"])
                     if len(p) * fps / hz >= 2:
                         ref = mf.clip(name)  # its split, labels and captions, so text metrics apply to the result
+                        # the outcome travels with the clip, so `eval t2m --tracked-to-end` can keep the clips played through
+                        labels = {**ref.labels, TRACKED_TO_END: per[name]["tracked_to_end"],
+                                  "tracked_seconds": round(per[name]["seconds"], 4)}
                         written.append(simulated_clip(name, p, hz, fps, skeleton, offsets, legacy, str(motion),
-                                                      split=ref.split, labels=ref.labels, captions=ref.captions))
+                                                      split=ref.split, labels=labels, captions=ref.captions))
                     else:
                         per[name]["error"] = "failed before two frames at the motion's rate were simulated: nothing written"
             del lib  # the next chunk's library replaces it, not beside it

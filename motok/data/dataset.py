@@ -22,6 +22,9 @@ from motok.skeleton import Skeleton
 MOTION_KINDS = ("motion-dataset", "motion")
 # What a clip in no split carries: "none" is what motok writes (own data, GPT samples); "" older files.
 NO_SPLIT = ("none", "")
+# The label `motok control track` gives each simulated clip: played to its end (true) or only to
+# the controller's failure (false); `motok eval t2m --tracked-to-end` keeps the first.
+TRACKED_TO_END = "tracked_to_end"
 
 
 @dataclass

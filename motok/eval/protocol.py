@@ -45,6 +45,8 @@ class T2MConfig:
     # Rows holding clips of the same names (a tracked file beside what it tracked) scored on the
     # names all of them hold (motok.eval.sets.common_clips); the reference statistics stay whole.
     common_clips: bool = False
+    # --motions rows keep only the clips `control track` played to their end (labels; others keep all)
+    tracked_to_end: bool = False
     # Generation with --gpt: sets of one sample per clip (the protocol regenerates every repeat:
     # gen_sets = repeats; fewer sets are reused in turn) and the MModality samples.
     gen_sets: int = 20

@@ -61,7 +61,10 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
         rows.append(recon_set(ref, Path(tokenizer), info["num_joints"]))
     if gpt is not None:
         rows.append(generated_set(Path(gpt), tokenizer, ref, cfg, save_generated))
-    rows += [motion_set(Path(p), split=cfg.split) for p in motions]
+    rows += [motion_set(Path(p), split=cfg.split, tracked_to_end=cfg.tracked_to_end) for p in motions]
+    if cfg.tracked_to_end and not any(r.extra.get("tracked_clips") for r in rows):
+        raise EvaluatorError("--tracked-to-end: no --motions file holds clips written by `motok control track` "
+                             "(none has the label 'tracked_to_end')")
     if cfg.captions == "unseen":  # generated rows already use only ref's captions; --motions rows do not
         rows = [r if r is ref else unseen_only(r, seen) for r in rows]
     if not rows:
@@ -138,6 +141,9 @@ def markdown(report: dict) -> str:
         if r.get("other_split_left_out"):
             lines.append(f"{r['name']}: {r['other_split_left_out']} clip(s) of other splits than {report['split']} "
                          f"left out.")
+        if r.get("not_tracked_to_end_left_out"):
+            lines.append(f"{r['name']}: {r['not_tracked_to_end_left_out']} clip(s) left out that the tracking played "
+                         f"only to its failure (--tracked-to-end).")
         if r.get("common_clips_left_out"):
             lines.append(f"{r['name']}: {r['common_clips_left_out']} clip(s) left out that a row sharing its clip "
                          f"names does not hold (--common-clips).")

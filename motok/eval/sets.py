@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.data.dataset import NO_SPLIT, MotionFile
+from motok.data.dataset import NO_SPLIT, TRACKED_TO_END, MotionFile
 from motok.eval import metrics as M
 from motok.eval.evaluator import UNIT, EvaluatorError, load_split
 from motok.features.humanml3d import recover_from_ric
@@ -97,12 +97,15 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
                             "tokenizer_sha256": meta["model_sha256"]})
 
 
-def motion_set(path: Path, name: str | None = None, split: str | None = None) -> MotionSet:
+def motion_set(path: Path, name: str | None = None, split: str | None = None,
+               tracked_to_end: bool = False) -> MotionSet:
     """Any ``motion`` artifact. Clips labelled ``role: mm`` (or, without roles, several ``sample``
     labels per caption) feed MModality; ``sample`` labels spread the others over the repeats.
 
     With ``split``, clips that carry another split are left out (a tracked dataset keeps its
     clips' splits); clips in no split (:data:`~motok.data.dataset.NO_SPLIT`: GPT samples) stay.
+    With ``tracked_to_end``, so are the clips a tracking played only to its failure (their
+    :data:`~motok.data.dataset.TRACKED_TO_END` label is false; clips without the label stay).
     How many were left out is in ``extra``."""
     with MotionFile(path) as mf:
         sd = load_split(mf, None)
@@ -114,13 +117,17 @@ def motion_set(path: Path, name: str | None = None, split: str | None = None) ->
             if len(other) == len(idx):
                 raise EvaluatorError(f"{path}: none of its {len(idx)} captioned clips is in split {split!r} "
                                      f"(its splits: {sorted(set(mf.splits[i] for i in idx))})")
-            drop = set(other)
-            keep = [k for k in range(len(idx)) if k not in drop]
-            sd = type(sd)(*[[col[k] for k in keep] for col in (sd.clips, sd.captions, sd.labels, sd.names)])
-            idx = [idx[k] for k in keep]
+            sd, idx, _ = _without(sd, idx, other)
+        labels = [json.loads(x) if x else {} for x in sd.labels]
+        tracked = sum(TRACKED_TO_END in lab for lab in labels)
+        failed = [k for k, lab in enumerate(labels) if tracked_to_end and lab.get(TRACKED_TO_END) is False]
+        if failed:
+            if len(failed) == len(idx):
+                raise EvaluatorError(f"{path}: none of its {len(idx)} captioned clips was tracked to the end")
+            sd, idx, keep = _without(sd, idx, failed)
+            labels = [labels[k] for k in keep]
         joints = [mf.frames("joints", i) for i in idx]
         J = mf.skeleton.num_joints
-    labels = [json.loads(x) if x else {} for x in sd.labels]
     roles = [lab.get("role", "") for lab in labels]
     main = [k for k, r in enumerate(roles) if r != "mm"]
     mm = [k for k, r in enumerate(roles) if r == "mm"] if "mm" in roles else \
@@ -137,7 +144,17 @@ def motion_set(path: Path, name: str | None = None, split: str | None = None) ->
                      mm_clips=[sd.clips[k] for k in mm], joints=[joints[k] for k in main],
                      names=[sd.names[k] for k in main],
                      extra={"num_joints": J, "motions_file": str(path),
-                            **({"other_split_left_out": len(other)} if other else {})})
+                            **({"other_split_left_out": len(other)} if other else {}),
+                            **({"tracked_clips": tracked} if tracked_to_end else {}),
+                            **({"not_tracked_to_end_left_out": len(failed)} if failed else {})})
+
+
+def _without(sd, idx: list[int], drop: list[int]) -> tuple:
+    """A loaded split ``sd`` and its file indices ``idx`` without the positions ``drop``, and the kept positions."""
+    gone = set(drop)
+    keep = [k for k in range(len(idx)) if k not in gone]
+    sd = type(sd)(*[[col[k] for k in keep] for col in (sd.clips, sd.captions, sd.labels, sd.names)])
+    return sd, [idx[k] for k in keep], keep
 
 
 def common_clips(rows: list[MotionSet]) -> list[MotionSet]:

@@ -145,3 +145,33 @@ def test_floating_motion_is_placed_on_the_floor_and_short_clips_fail_alone(pd_co
         track(pd_controller, tmp_path / "t.h5", tmp_path / "none.h5")
     assert not (tmp_path / "none.h5").exists()
     json.dumps(res)  # results are plain JSON
+
+
+def test_track_failures_groups_the_report_and_replays_the_failures(pd_controller, small_dataset, tmp_path):
+    """scripts/track_failures.py: per content label, the shares and errors of a track report, and
+    the failed clips played again to the same step (the tracking is deterministic); plain PD falls:
+    its head ends below the reference's."""
+    import importlib.util
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location(
+        "track_failures", Path(__file__).resolve().parent.parent / "scripts" / "track_failures.py")
+    tf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tf)
+    with MotionFile(small_dataset) as mf:
+        split = next(s for s in ("test", "val", "train") if mf.split_indices(s))
+    res = track(pd_controller, small_dataset, tmp_path / "sim.h5", split=split, clips="dataset-2_walk*")
+    rep = json.loads(report_path(tmp_path / "sim.h5").read_text())
+    content = tf.content_of(rep, str(small_dataset), split)
+    assert set(content) == set(res["per_clip"]) and set(content.values()) <= {"walk", "walk-turn-left",
+                                                                           "walk-turn-right"}
+    groups = tf.summary(rep, content)
+    assert sum(g["clips"] for g in groups.values()) == len(content)
+    failed = sorted(n for g in groups.values() for n in g["failed"])
+    assert failed == sorted(n for n, v in res["per_clip"].items() if not v["tracked_to_end"]) and failed
+    for c, g in groups.items():
+        clips = [res["per_clip"][n] for n, cc in content.items() if cc == c]
+        assert g["tracked_to_end"] == pytest.approx(np.mean([v["tracked_to_end"] for v in clips]))
+        assert g["mpjpe_mm"] == pytest.approx(np.median([v["mpjpe_mm"] for v in clips]))
+    f = tf.how_they_failed(pd_controller, str(small_dataset), failed)
+    assert f["clips"] == len(failed) and f["head_m"] < f["ref_head_m"]
+    assert f["seconds"] == pytest.approx({n: res["per_clip"][n]["seconds"] for n in failed})

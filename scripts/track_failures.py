@@ -52,13 +52,14 @@ def summary(report: dict, content: dict[str, str]) -> dict[str, dict]:
     out = {}
     for c, clips in sorted(rows.items(), key=lambda kv: -len(kv[1])):
         played = [v for _, v in clips if "mpjpe_mm" in v]  # a clip too short to track has no error
+        failed = [(n, v) for n, v in clips if not v["tracked_to_end"] and "mpjpe_mm" in v]
         out[c] = {"clips": len(clips), "tracked_to_end": float(np.mean([v["tracked_to_end"] for _, v in clips])),
                   "mpjpe_mm": float(np.median([v["mpjpe_mm"] for v in played])) if played else float("nan"),
                   "g_mpjpe_mm": float(np.median([v["g_mpjpe_mm"] for v in played])) if played else float("nan"),
-                  "failed": [n for n, v in clips if not v["tracked_to_end"] and "mpjpe_mm" in v]}
-        failed = [report["per_clip"][n] for n in out[c]["failed"]]
-        out[c]["failed_at"] = float(np.median([v["seconds"] / v["clip_seconds"] for v in failed])) if failed \
-            else float("nan")  # the share of its clip a failed clip was played for
+                  "failed": [n for n, _ in failed],
+                  # the share of its clip a failed clip was played for
+                  "failed_at": float(np.median([v["seconds"] / v["clip_seconds"] for _, v in failed])) if failed
+                  else float("nan")}
     return out
 
 

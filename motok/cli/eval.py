@@ -213,9 +213,6 @@ def labels_command(
     guidance: Optional[float] = typer.Option(None, "--guidance", help="CFG scale with --gpt (default: the run's)."),
     snap: Optional[int] = typer.Option(None, "--snap", help="With --gpt: condition new sentences on their K nearest "
                                        "training captions (0 = off; default: the run's)."),
-    to_end: bool = typer.Option(False, "--tracked-to-end", help="--motions rows written by `control track` keep "
-                                "the clips played to their end; with --common-clips, the rows sharing their "
-                                "clips follow."),
     save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples (.h5).",
                                                    suffixes=H5, required=False),
     out: Optional[Path] = output_option(help="Write the report (.json).", suffixes=(".json",), required=False),

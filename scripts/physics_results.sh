@@ -9,7 +9,8 @@
 #   kill -TERM PID                             # the training under way stops at its next checkpoint,
 #                                              # and the queue stops after it
 #   STOP_AT=19:40 scripts/physics_results.sh   # the same TERM, sent by the queue to itself at that time
-#                                              # (anything `date -d` reads: "19:40", "+150 min")
+#                                              # (anything `date -d` reads: "19:40", "+150 min";
+#                                              #  a clock time already past means tomorrow's)
 #   mkdir -p runs/dry && ln -s ../bandai2.h5 runs/dry/ && R=runs/dry EXPERT_IT=40 PRIOR_IT=20 TASK_IT=10 \
 #     GEN_N=4 GEN_SECONDS=3 EVAL_N=8 BALLS_N=4 KIN_IT=20 T2M_RECIPE=recipes/eval/t2m_toy.yaml \
 #     scripts/physics_results.sh                 # every stage at toy size (~35 min on 2 cores)
@@ -285,8 +286,12 @@ arm_stop() {
     at=$(date -d "$STOP_AT" +%s 2>/dev/null) ||
         { echo "STOP_AT=$STOP_AT: not a time date -d reads (e.g. 19:40 or '+150 min')" >&2; exit 2; }
     now=$(date +%s)
+    # a clock time already past today is meant for tomorrow (a session that crosses midnight)
+    if [ "$at" -le "$now" ] && [[ "$STOP_AT" =~ ^[0-9]{1,2}:[0-9]{2}$ ]]; then
+        at=$(date -d "tomorrow $STOP_AT" +%s)
+    fi
     [ "$at" -gt "$now" ] || { echo "STOP_AT=$STOP_AT ($(date -u -d "@$at" +%H:%M:%S) UTC) is not in the future" >&2; exit 2; }
-    log "stopping itself at $(date -u -d "@$at" +%H:%M:%S) UTC (STOP_AT=$STOP_AT)"
+    log "stopping itself at $(date -u -d "@$at" '+%F %H:%M:%S') UTC (STOP_AT=$STOP_AT)"
     # shellcheck disable=SC2016  # $s is the timer's own variable
     ( trap 'kill "$s" 2>/dev/null; wait "$s"; exit 0' TERM; sleep $((at - now)) & s=$!; wait "$s"; kill -TERM $$ ) &
     timer=$!

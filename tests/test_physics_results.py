@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -361,6 +362,17 @@ def test_stop_at_refuses_a_time_past_or_unreadable(tmp_path):
         env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": "false", "STOP_AT": bad}
         p = subprocess.run(["bash", str(SCRIPT), "data"], env=env, capture_output=True, text=True, timeout=60)
         assert p.returncode == 2 and said in p.stderr and "stage data" not in p.stdout, (bad, p.stdout, p.stderr)
+
+
+def test_stop_at_a_clock_time_already_past_means_tomorrow(tmp_path):
+    # a session that crosses midnight: at 22:50, STOP_AT=01:25 is the next day's
+    past = time.time() - 120
+    env = {**os.environ, "R": str(tmp_path / "runs"), "MOTOK": "true",
+           "STOP_AT": time.strftime("%H:%M", time.localtime(past))}
+    p = subprocess.run(["bash", str(SCRIPT), "data"], env=env, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stdout + p.stderr
+    tomorrow = time.strftime("%Y-%m-%d", time.gmtime(int(past // 60 * 60) + 86400))
+    assert f"stopping itself at {tomorrow} " in p.stdout, p.stdout
 
 
 def test_a_queue_that_ends_before_stop_at_takes_its_timer_along(tmp_path):

@@ -27,7 +27,8 @@
 #   prioreval Table 1 (motion matching of every prior's generations)
 #   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1), TASK_IT iterations each (issue 16)
 #   tasks     in-betweening and head tracking over hybrid and continuous; hybrid with 1, 2, 4 codebooks on navigation (Fig. 13)
-#   taskeval  every task run evaluated; the thrown balls on the navigation runs
+#   taskeval  every task run evaluated; the thrown balls on the navigation runs (every 0.3 s, and
+#             every $BALL_PERIODS s: "1 3 1000" unless set)
 #   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
@@ -70,6 +71,7 @@ GEN_N=${GEN_N:-64}
 GEN_SECONDS=${GEN_SECONDS:-30}
 EVAL_N=${EVAL_N:-256}
 BALLS_N=${BALLS_N:-64}
+read -ra BALL_PERIODS <<< "${BALL_PERIODS-1 3 1000}"  # besides the paper's 0.3 s; 1000: no ball in 8 s
 KIN=()
 [ -n "${KIN_IT:-}" ] && KIN=(--set iterations="$KIN_IT")
 T2M_RECIPE=${T2M_RECIPE:-recipes/eval/t2m.yaml}
@@ -223,8 +225,12 @@ stage_taskeval() {
             once "$dir/eval_${t}_test.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" \
                 -d "$DATA" --split test --render "$dir/$t.mp4"
         fi
-        [ "$t" = navigation ] && once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" \
-            --render "$dir/balls.mp4"
+        [ "$t" = navigation ] || continue
+        once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" --render "$dir/balls.mp4"
+        local p
+        for p in "${BALL_PERIODS[@]}"; do  # the same starts (seed 0) under fewer balls: what the barrage takes
+            once "$dir/perturb_period$p.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" --period "$p"
+        done
     done
     return 0
 }

@@ -158,20 +158,21 @@ def tasks(R: Path) -> str:
     out = []
     nav = []
     for run in sorted(R.glob("nav_*")):
-        e, p, m = load(run / "eval_navigation.json"), load(run / "perturb.json"), metrics(run)
+        e, m = load(run / "eval_navigation.json"), metrics(run)
         if e is None or not m:
             continue
         nav.append([run.name, f"{m[-1]['samples'] / 1e6:.1f} M", f"{m[-1]['wall_s'] / 60:.0f} min",
                     pct(e["reached_share"]), num(e["time_to_reach_mean_s"], "{:.2f}"),
                     num(e.get("closest_distance_mean_m"), "{:.2f}"), pct(e.get("approach_share")),
                     num(e["falls_per_episode"], "{:.2f}"), num(e["goal_speed_mean"], "{:.2f}"),
-                    num(e.get("idle_distance_mean"), "{:.2f}"), pct(e.get("idle_filtered_rate")),
-                    "" if p is None else f"{p['hits']} / {p['falls']} / {p['recoveries']} / {pct(p['reached_share'])}"])
+                    num(e.get("idle_distance_mean"), "{:.2f}"), pct(e.get("idle_filtered_rate"))])
     if nav:
         out.append(table(["run", "samples", "wall", "targets reached", "time to reach s", "closest approach m",
                           "distance closed", "falls / episode",
-                          "speed at goal m/s", "idle distance", "idle filtered",
-                          "balls: hits / falls / recoveries / reached"], nav))
+                          "speed at goal m/s", "idle distance", "idle filtered"], nav))
+    balls = balls_table(R)
+    if balls:
+        out.append(balls)
     for task in ("inbetween", "hmd"):
         rows = []
         for run in sorted(R.glob(f"{task}_*")):
@@ -193,6 +194,29 @@ def tasks(R: Path) -> str:
                 heads = heads + ["head error"]
             out.append(table(["run", "samples", "success"] + heads, rows))
     return "\n\n".join(out)
+
+
+def balls_table(R: Path) -> str:
+    """Thrown balls (section 6.3.3), one row per navigation run and period, the paper's 0.3 s first.
+    Recoveries count over the hits whose 3 s window was played (`hits_resolved`): a hit too near an
+    episode's end is censored whatever follows it."""
+    rows = []
+    for run in sorted(R.glob("nav_*")):
+        found = [(0.3, run / "perturb.json")] + [(float(f.stem.removeprefix("perturb_period")), f)
+                                                 for f in run.glob("perturb_period*.json")]
+        for period, f in sorted(found, key=lambda x: x[0]):
+            p = load(f)
+            if p is None:
+                continue
+            fell = round(p["terminated_share"] * p["episodes"])
+            rows.append([run.name, "never in 8 s" if period >= 8 else f"{period:g} s", p["hits"],
+                         f"{fell} / {p['episodes']}", f"{p['recoveries']} / {p['hits_resolved']}",
+                         pct(p["recovery_rate"]) if p["hits_resolved"] else "", p["hits_censored"],
+                         pct(p.get("reached_share")), pct(p["success"])])
+    if not rows:
+        return ""
+    return table(["run", "one ball every", "hits", "episodes that fell", "recovered / resolved hits", "recovered",
+                  "censored hits", "targets reached", "episodes to the end"], rows)
 
 
 def t2p(R: Path) -> str:

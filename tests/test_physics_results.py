@@ -145,8 +145,11 @@ def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):
         a = evals[name]
         assert a[a.index("--split") + 1] == "test" and a[a.index("-d") + 1].endswith("bandai2.h5")
     assert "--split" not in evals["nav_hybrid"]
+    periods = [a[a.index("--period") + 1] for a in cmds if "--period" in a]
+    assert periods == ["1", "3", "1000"]  # besides the paper's 0.3 s (no --period), in their own files
     done = ["inbetween_hybrid/eval_inbetween_test.json", "hmd_continuous/eval_hmd_test.json",
-            "nav_hybrid/eval_navigation.json", "nav_hybrid/perturb.json"]
+            "nav_hybrid/eval_navigation.json", "nav_hybrid/perturb.json",
+            *(f"nav_hybrid/perturb_period{p}.json" for p in periods)]
     (tmp_path / "again").mkdir()
     cmds = queue(tmp_path / "again", "taskeval", checkpoints=["nav_hybrid", "inbetween_hybrid", "hmd_continuous"],
                  outputs=done)
@@ -249,7 +252,19 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
         "falls_per_episode": 0.5, "goal_speed_mean": None, "idle_distance_mean": None, "idle_filtered_rate": None}))
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
                          timeout=60).stdout
-    assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |  |" in out, out
+    assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |" in out, out
+    ball = {"episodes": 64, "hits": 566, "terminated_share": 63 / 64, "recoveries": 90, "hits_resolved": 500,
+            "recovery_rate": 0.18, "hits_censored": 66, "reached_share": 0.01, "success": 1 / 64}
+    (nav / "perturb.json").write_text(json.dumps(ball))
+    (nav / "perturb_period1000.json").write_text(json.dumps({**ball, "hits": 0, "recoveries": 0, "hits_resolved": 0,
+                                                             "recovery_rate": None, "hits_censored": 0}))
+    (nav / "perturb_period3.json").write_text(json.dumps({**ball, "hits": 102, "terminated_share": 0.5}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    rows = [x for x in out.splitlines() if x.startswith("| nav_hybrid |") and "episodes" not in x][1:]
+    assert rows == ["| nav_hybrid | 0.3 s | 566 | 63 / 64 | 90 / 500 | 18.0 % | 66 | 1.0 % | 1.6 % |",
+                    "| nav_hybrid | 3 s | 102 | 32 / 64 | 90 / 500 | 18.0 % | 66 | 1.0 % | 1.6 % |",
+                    "| nav_hybrid | never in 8 s | 0 | 63 / 64 | 0 / 0 |  | 0 | 1.0 % | 1.6 % |"], out
     assert "| hybrid | 2 | 0.0 M | 0 min | 3,800 |  | 63.5 % | 60.4 % | 52.6 | 114.0 | 8.16 | 5.92 | 0.90 |" in out
     assert "| prior | 2 |" in out and "| hybrid | 25.0 % |" in out
     assert "| hybrid-m1 | 5 | 1.250 | 10.0 % | 20.0 % | 15.0 % |  | 60.0 | 1 / 3 |" in out and "threshold 3.668" in out

@@ -202,12 +202,10 @@ def balls_table(R: Path) -> str:
     episode's end is censored whatever follows it."""
     rows = []
     for run in sorted(R.glob("nav_*")):
-        found = [(0.3, run / "perturb.json")] + [(float(f.stem.removeprefix("perturb_period")), f)
-                                                 for f in run.glob("perturb_period*.json")]
-        for period, f in sorted(found, key=lambda x: x[0]):
-            p = load(f)
-            if p is None:
-                continue
+        # each result names its own period (`perturb.json` holds the paper's, others their own files)
+        found = sorted((load(f) for f in run.glob("perturb*.json")), key=lambda p: p["config"]["period"])
+        for p in found:
+            period = p["config"]["period"]
             fell = round(p["terminated_share"] * p["episodes"])
             rows.append([run.name, "never in 8 s" if period >= 8 else f"{period:g} s", p["hits"],
                          f"{fell} / {p['episodes']}", f"{p['recoveries']} / {p['hits_resolved']}",

@@ -254,11 +254,14 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
                          timeout=60).stdout
     assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |" in out, out
     ball = {"episodes": 64, "hits": 566, "terminated_share": 63 / 64, "recoveries": 90, "hits_resolved": 500,
-            "recovery_rate": 0.18, "hits_censored": 66, "reached_share": 0.01, "success": 1 / 64}
+            "recovery_rate": 0.18, "hits_censored": 66, "reached_share": 0.01, "success": 1 / 64,
+            "config": {"period": 0.3}}
     (nav / "perturb.json").write_text(json.dumps(ball))
     (nav / "perturb_period1000.json").write_text(json.dumps({**ball, "hits": 0, "recoveries": 0, "hits_resolved": 0,
-                                                             "recovery_rate": None, "hits_censored": 0}))
-    (nav / "perturb_period3.json").write_text(json.dumps({**ball, "hits": 102, "terminated_share": 0.5}))
+                                                             "recovery_rate": None, "hits_censored": 0,
+                                                             "config": {"period": 1000.0}}))
+    (nav / "perturb_period3.json").write_text(json.dumps({**ball, "hits": 102, "terminated_share": 0.5,
+                                                          "config": {"period": 3.0}}))
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
                          timeout=60).stdout
     rows = [x for x in out.splitlines() if x.startswith("| nav_hybrid |") and "episodes" not in x][1:]

@@ -213,9 +213,22 @@ stage_tasks() {
     done
 }
 
+# unfinished DIR: "I of N" when DIR's checkpoint stands before the iterations its config asks for
+# (a run a session's end stopped); nothing for a finished run or a bundle that does not say.
+unfinished() {
+    python3 -c 'import json, sys
+b = json.load(open(sys.argv[1]))
+it, goal = b.get("extra", {}).get("iteration"), b.get("config", {}).get("iterations")
+if it is not None and goal and it < goal: print(f"{it} of {goal}")' "$1/bundle.json"
+}
+
 stage_taskeval() {
+    local part
     for dir in "$R"/nav_* "$R"/inbetween_* "$R"/hmd_*; do
         [ -f "$dir/bundle.json" ] || continue
+        # an evaluation file is never made again: one of a half-trained policy would stand for the run
+        part=$(unfinished "$dir")
+        if [ -n "$part" ]; then log "skip $dir: not evaluated at iteration $part (tasks resumes it)"; continue; fi
         local t=navigation
         case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
         if [ "$t" = navigation ]; then  # no reference motion: the targets are drawn

@@ -154,6 +154,16 @@ def orderings(R: Path) -> str:
     return "The paper's orderings on these outputs:\n\n" + table(["claim", "ours", ""], rows)
 
 
+def evaluated(e: dict, m: list[dict]) -> str:
+    """The samples of the checkpoint an evaluation played, and its iteration when the training went
+    on past it (the evaluation then stands for an earlier policy than the curves' end)."""
+    ck = e.get("checkpoint", {})
+    if ck.get("samples") is None:  # an evaluation that does not say: the run's last record
+        return f"{m[-1]['samples'] / 1e6:.1f} M"
+    s = f"{ck['samples'] / 1e6:.1f} M"
+    return s if ck.get("iteration", m[-1]["iteration"]) >= m[-1]["iteration"] else f"{s} (it {ck['iteration']})"
+
+
 def tasks(R: Path) -> str:
     out = []
     nav = []
@@ -161,7 +171,7 @@ def tasks(R: Path) -> str:
         e, m = load(run / "eval_navigation.json"), metrics(run)
         if e is None or not m:
             continue
-        nav.append([run.name, f"{m[-1]['samples'] / 1e6:.1f} M", f"{m[-1]['wall_s'] / 60:.0f} min",
+        nav.append([run.name, evaluated(e, m), f"{m[-1]['wall_s'] / 60:.0f} min",
                     pct(e["reached_share"]), num(e["time_to_reach_mean_s"], "{:.2f}"),
                     num(e.get("closest_distance_mean_m"), "{:.2f}"), pct(e.get("approach_share")),
                     num(e["falls_per_episode"], "{:.2f}"), num(e["goal_speed_mean"], "{:.2f}"),
@@ -184,7 +194,7 @@ def tasks(R: Path) -> str:
                 keys = [f"keyframe_{k}" for k in keys] + keys
             else:
                 keys = keys + ["head_error_mm"]
-            rows.append([run.name, f"{m[-1]['samples'] / 1e6:.1f} M", pct(e["success_rate"])]
+            rows.append([run.name, evaluated(e, m), pct(e["success_rate"])]
                         + [f"{e[k + '_mean']:.1f} +- {e[k + '_std']:.1f}" for k in keys])
         if rows:
             heads = ["MPJPE", "G-MPJPE", "vel. err.", "acc. err."]

@@ -31,7 +31,7 @@ def queue(tmp_path: Path, *stages: str, checkpoints=(), outputs=(), env=None) ->
     runs = tmp_path / "runs"
     for d in checkpoints:
         (runs / d).mkdir(parents=True, exist_ok=True)
-        (runs / d / "bundle.json").write_text("{}")
+        (runs / d / "bundle.json").write_text(json.dumps({"config": {"iterations": 10}, "extra": {"iteration": 10}}))
         (runs / d / "metrics.jsonl").write_text("")
     for f in outputs:
         (runs / f).parent.mkdir(parents=True, exist_ok=True)
@@ -156,6 +156,23 @@ def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):
     assert cmds == []
 
 
+def test_a_task_run_stopped_before_its_end_is_not_evaluated(tmp_path):
+    """An evaluation file is never made again, so one of a half-trained policy would stand for the
+    run: `taskeval` leaves a run its session stopped to the `tasks` that resumes it, and says so."""
+    runs = tmp_path / "runs"
+    for d, it in (("nav_hybrid", 3000), ("inbetween_hybrid", 2950)):
+        (runs / d).mkdir(parents=True)
+        (runs / d / "bundle.json").write_text(json.dumps({"config": {"iterations": 3000}, "extra": {"iteration": it}}))
+    shim = tmp_path / "record.py"
+    shim.write_text("import json, sys\nprint(json.dumps(sys.argv[1:]), file=sys.stderr)\n")
+    p = subprocess.run(["bash", str(SCRIPT), "taskeval"], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "R": str(runs), "MOTOK": f"{sys.executable} {shim}"})
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert f"skip {runs}/inbetween_hybrid: not evaluated at iteration 2950 of 3000" in p.stdout
+    assert "--run " + str(runs / "inbetween_hybrid") not in p.stdout
+    assert "--run " + str(runs / "nav_hybrid") in p.stdout  # the finished one is
+
+
 def test_an_unknown_stage_fails_before_anything_runs(tmp_path):
     p = subprocess.run(["bash", str(SCRIPT), "data", "bogus"], env={**os.environ, "R": str(tmp_path / "runs"),
                        "MOTOK": "false"}, capture_output=True, text=True, timeout=60)
@@ -253,6 +270,16 @@ def test_the_tables_read_the_queue_outputs(tmp_path):
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
                          timeout=60).stdout
     assert "| nav_hybrid | 6.1 M | 25 min | 0.0 % |  | 4.25 | 40.0 % | 0.50 |  |  |  |" in out, out
+    inb = runs / "inbetween_hybrid"  # evaluated at 2,950, the training went on: the row says which policy
+    inb.mkdir()
+    (inb / "metrics.jsonl").write_text(json.dumps({"iteration": 3000, "samples": 6_144_000, "wall_s": 2800.0}))
+    errs = {f"{f}{k}_{s}": 1.0 for f in ("", "keyframe_") for k in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm",
+                                                                    "acc_err_mm") for s in ("mean", "std")}
+    (inb / "eval_inbetween_test.json").write_text(json.dumps({
+        "success_rate": 0.5, **errs, "checkpoint": {"iteration": 2950, "samples": 6_041_600}}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "| inbetween_hybrid | 6.0 M (it 2950) | 50.0 % | 1.0 +- 1.0 |" in out, out
     ball = {"episodes": 64, "hits": 566, "terminated_share": 63 / 64, "recoveries": 90, "hits_resolved": 500,
             "recovery_rate": 0.18, "hits_censored": 66, "reached_share": 0.01, "success": 1 / 64,
             "config": {"period": 0.3}}

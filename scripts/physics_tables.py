@@ -246,7 +246,8 @@ def t2p(R: Path) -> str:
 
 
 # The latest evaluation each kind of run logs while training, for the status lines.
-PROGRESS_KEYS = ("eval_success", "eval_reached_share", "eval_approach_share", "eval_mpjpe_mm")
+PROGRESS_KEYS = ("eval_success", "eval_success_rate", "eval_reached_share", "eval_approach_share", "eval_mpjpe_mm",
+                 "eval_mpjpe_mm_mean", "eval_head_error_mm_mean")
 
 
 def target(run: Path) -> int | None:

@@ -386,6 +386,13 @@ def test_the_status_says_where_each_run_stands(tmp_path):
     out = subprocess.run([sys.executable, str(tables), "--runs", str(runs), "--status"], capture_output=True,
                          text=True, timeout=60).stdout
     assert "| expert_set2 | 3 / 3 (done) |" in out
+    task = runs / "inbetween_hybrid"  # a task policy logs its evaluation under the task's own names
+    task.mkdir()
+    (task / "metrics.jsonl").write_text(json.dumps({"iteration": 100, "samples": 204_800, "wall_s": 90.0,
+                                                    "eval_success_rate": 0.625, "eval_mpjpe_mm_mean": 76.04}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs), "--status"], capture_output=True,
+                         text=True, timeout=60).stdout
+    assert "| success_rate 0.625 (it 100), mpjpe_mm_mean 76 (it 100) |" in out, out
 
 
 def test_stop_at_stops_the_queue_after_the_command_under_way(tmp_path):

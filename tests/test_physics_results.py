@@ -130,9 +130,9 @@ def test_outputs_that_exist_are_not_made_again(tmp_path):
 def test_tasks_wait_for_their_prior(tmp_path):
     cmds = queue(tmp_path, "nav", checkpoints=["prior_continuous"])
     outs = [out_of(a) for a in cmds]
-    assert outs == ["nav_continuous", "nav_continuous_std0.1"]  # no hybrid or discrete+ prior yet
-    stds = [a[a.index("--set") + 3] for a in cmds]  # --set iterations=N --set net.std=S
-    assert stds == ["net.std=0.2", "net.std=0.1"]
+    assert outs == ["nav_continuous", "nav_continuous_std0.1", "nav_continuous_lr5e-5"]  # no hybrid or discrete+ yet
+    sets = [[a[i + 1] for i, x in enumerate(a) if x == "--set"][1:] for a in cmds]  # after iterations=N
+    assert sets == [["net.std=0.2"], ["net.std=0.1"], ["net.std=0.2", "ppo.lr=5e-5"]]
 
 
 def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):

@@ -26,7 +26,8 @@
 #             each evaluated at once: imitation on the train and test clips (Fig. 4), its Table 1 generations
 #   prioreval Table 1 (motion matching of every prior's generations)
 #   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1; std 0.2 at lr 5e-5), TASK_IT iterations each (issue 16)
-#   tasks     in-betweening and head tracking over hybrid and continuous; hybrid with 1, 2, 4 codebooks on navigation (Fig. 13)
+#   tasks     in-betweening and head tracking over hybrid and continuous (and continuous at lr 5e-5); hybrid with 1, 2, 4
+#             codebooks on navigation (Fig. 13)
 #   taskeval  every task run evaluated; the thrown balls on the navigation runs (every 0.3 s, and
 #             every $BALL_PERIODS s: "1 3 1000" unless set)
 #   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
@@ -211,6 +212,9 @@ stage_tasks() {
     for t in inbetween hmd; do
         task "$t" hybrid "$R/${t}_hybrid"
         task "$t" continuous "$R/${t}_continuous"
+        # Tables 6-8's lr, as in stage_nav: at 3e-4 in-betweening's Gaussian updates reach 1-7 nats
+        # of approx. KL and its task reward falls as it trains (0.81 -> 0.73 per step in 2,100 iterations)
+        task "$t" continuous "$R/${t}_continuous_lr5e-5" --set ppo.lr=5e-5
     done
     for m in 1 2 4; do
         task navigation hybrid "$R/nav_hybrid_m$m" --codebooks "$m"
@@ -294,8 +298,10 @@ stage_plots() {
         "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1" "$R/nav_continuous_lr5e-5"
     plot codebooks r_task,episode_seconds,eval_reached_share "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
         "$R/nav_hybrid_m4" "$R/nav_hybrid"
-    plot inbetween r_task,episode_seconds "$R/inbetween_hybrid" "$R/inbetween_continuous"
-    plot hmd r_task,episode_seconds "$R/hmd_hybrid" "$R/hmd_continuous"
+    plot inbetween r_task,episode_seconds,eval_success_rate,eval_mpjpe_mm_mean "$R/inbetween_hybrid" \
+        "$R/inbetween_continuous" "$R/inbetween_continuous_lr5e-5"
+    plot hmd r_task,episode_seconds,eval_success_rate,eval_head_error_mm_mean "$R/hmd_hybrid" "$R/hmd_continuous" \
+        "$R/hmd_continuous_lr5e-5"
 }
 
 ALL=(data expert priors prioreval nav tasks taskeval t2p plots)

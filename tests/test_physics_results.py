@@ -133,6 +133,13 @@ def test_tasks_wait_for_their_prior(tmp_path):
     assert outs == ["nav_continuous", "nav_continuous_std0.1", "nav_continuous_lr5e-5"]  # no hybrid or discrete+ yet
     sets = [[a[i + 1] for i, x in enumerate(a) if x == "--set"][1:] for a in cmds]  # after iterations=N
     assert sets == [["net.std=0.2"], ["net.std=0.1"], ["net.std=0.2", "ppo.lr=5e-5"]]
+    (tmp_path / "tasks").mkdir()
+    cmds = queue(tmp_path / "tasks", "tasks", checkpoints=["prior_hybrid", "prior_continuous"])
+    runs = [(out_of(a), [a[i + 1] for i, x in enumerate(a) if x == "--set"][1:]) for a in cmds]
+    assert runs == [(f"{t}_{k}", ["ppo.lr=5e-5"] if k.endswith("lr5e-5") else []) for t in ("inbetween", "hmd")
+                    for k in ("hybrid", "continuous", "continuous_lr5e-5")] + [
+        (f"nav_hybrid_m{m}", []) for m in (1, 2, 4)]
+    assert all(a[a.index("--codebooks") + 1] == out_of(a)[-1] for a in cmds if "--codebooks" in a)
 
 
 def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):

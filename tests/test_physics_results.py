@@ -137,8 +137,8 @@ def test_tasks_wait_for_their_prior(tmp_path):
     cmds = queue(tmp_path / "tasks", "tasks", checkpoints=["prior_hybrid", "prior_continuous"])
     runs = [(out_of(a), [a[i + 1] for i, x in enumerate(a) if x == "--set"][1:]) for a in cmds]
     assert runs == [(f"{t}_{k}", ["ppo.lr=5e-5"] if k.endswith("lr5e-5") else []) for t in ("inbetween", "hmd")
-                    for k in ("hybrid", "continuous", "continuous_lr5e-5")] + [
-        (f"nav_hybrid_m{m}", []) for m in (1, 2, 4)]
+                    for k in ("hybrid", "continuous_lr5e-5")] + [
+        (f"nav_hybrid_m{m}", []) for m in (1, 2, 4)] + [("inbetween_continuous", []), ("hmd_continuous", [])]
     assert all(a[a.index("--codebooks") + 1] == out_of(a)[-1] for a in cmds if "--codebooks" in a)
 
 

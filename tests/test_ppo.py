@@ -11,7 +11,7 @@ import torch
 from motok.control.amp import AMP, AMPConfig, ReplayBuffer, gradient_penalty, style_reward
 from motok.control.networks import RunningNorm
 from motok.control.policies import EncoderDecoderPolicy
-from motok.control.ppo import PPOConfig, Rollout, gae, learning_rate, policy_loss, value_loss
+from motok.control.ppo import PPOConfig, Rollout, gae, kl_warning, learning_rate, policy_loss, value_loss
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -69,6 +69,14 @@ def test_value_loss_clipping_and_lr_schedules():
     assert learning_rate(c, 5, 10) == pytest.approx(0.55) and learning_rate(c, 10, 10) == pytest.approx(0.1)
     with pytest.raises(ValueError):
         learning_rate(PPOConfig(lr_schedule="step"), 0, 1)
+
+
+def test_the_kl_warning_reads_the_median_of_the_window():
+    assert kl_warning([]) is None
+    assert kl_warning([0.03, 0.05, 0.04], threshold=0.3) is None
+    assert kl_warning([0.03, 5.0, 0.04], threshold=0.3) is None  # one wild update is not a trend
+    msg = kl_warning([0.5, 0.03, 0.8], threshold=0.3)
+    assert "median 0.5 nats" in msg and "last 3 iterations" in msg and "ppo.lr" in msg
 
 
 def test_running_norm_matches_batch_statistics_and_is_saved():

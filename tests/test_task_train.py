@@ -287,3 +287,30 @@ def test_the_command_line_knows_every_task():
     from motok.cli.priors import EVAL_TASKS
     from motok.control.tasks import registry
     assert set(EVAL_TASKS) == {"imitation", *registry.TASKS}
+
+
+def test_updates_that_leave_the_trust_region_are_reported_once(hum, walk_lib, small_dataset, tmp_path, capsys,
+                                                                monkeypatch):
+    """The continuous prior's Gaussian at too large an lr moved nats of KL per update and diverged
+    while the curves looked like training (docs/results.md); the run now says so, once, and a run
+    whose updates stay small says nothing."""
+    from motok.control import runner
+    from motok.control.ppo import KL_WARN
+
+    prior = tiny_prior_bundle(tmp_path, hum, walk_lib, small_dataset, kind="continuous")
+    monkeypatch.setattr(runner, "KL_WINDOW", 3)
+    cfg = small_cfg(iterations=6)
+    cfg.env.num_envs = 8
+    cfg.ppo = replace(cfg.ppo, horizon=8, minibatch_size=16, epochs=4, clip=0.1, lr=1e-1)
+    cfg.net = HighLevelNetConfig(policy=[32], value=[32], std=0.02)
+    capsys.readouterr()
+    train_from_prior(replace(cfg), prior, tmp_path / "wild")
+    rows = [json.loads(x) for x in (tmp_path / "wild" / "metrics.jsonl").read_text().splitlines()]
+    said = " ".join(capsys.readouterr().err.split())
+    assert sorted(r["approx_kl"] for r in rows)[len(rows) // 2] > KL_WARN  # the run the warning is for
+    assert said.count("left the trust region") == 1 and "ppo.lr" in said
+    cfg.ppo = replace(cfg.ppo, lr=1e-7)
+    train_from_prior(replace(cfg), prior, tmp_path / "tame")
+    rows = [json.loads(x) for x in (tmp_path / "tame" / "metrics.jsonl").read_text().splitlines()]
+    assert max(r["approx_kl"] for r in rows) < KL_WARN
+    assert "trust region" not in capsys.readouterr().err

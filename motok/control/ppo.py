@@ -101,6 +101,26 @@ def value_loss(v, old_v, returns, clip: float | None):
     return 0.5 * torch.max(unclipped, (v_clipped - returns) ** 2).mean()
 
 
+# A median approximate KL per update (nats) over KL_WINDOW iterations above which the updates have
+# left the clipped objective's trust region: policies that learn here stay at 0.02-0.07 (the
+# expert, the categorical task policies), while the continuous prior's Gaussian at lr 3e-4 moved
+# 0.2-11 and its in-betweening diverged (docs/results.md).
+KL_WARN, KL_WINDOW = 0.3, 50
+
+
+def kl_warning(recent, threshold: float = KL_WARN) -> str | None:
+    """The warning a training prints once when the median of its ``recent`` iterations' ``approx_kl``
+    exceeds ``threshold``, else None: the clip no longer bounds the steps, and the lr should fall."""
+    if not recent:
+        return None
+    kl = float(sorted(recent)[len(recent) // 2])
+    if not kl > threshold:
+        return None
+    return (f"[bold red]warning:[/] PPO's updates move a median {kl:.2g} nats of approximate KL over the last "
+            f"{len(recent)} iterations (policies that learn: < {threshold:g}): they have left the trust region "
+            f"and training may diverge; lower ppo.lr (--set ppo.lr=...)")
+
+
 def learning_rate(cfg: PPOConfig, iteration: int, total: int) -> float:
     """LR for 0-based ``iteration`` of ``total``."""
     frac = min(max(iteration / max(total, 1), 0.0), 1.0)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+from collections import deque
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Protocol
@@ -30,6 +31,7 @@ from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.checkpoint import (CheckpointError, MetricsLog, load_bundle, rng_state, save_bundle, set_rng_state,
                               sha256_state)
 from motok.config import to_dict
+from motok.control.ppo import KL_WINDOW, kl_warning
 from motok.distributed import Dist, gather, init_distributed, shutdown_distributed
 from motok.sim.humanoid import Humanoid
 
@@ -281,6 +283,7 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
                                "rank_state_sha256": hashes})
 
     wrote = False
+    kls: deque = deque(maxlen=KL_WINDOW)  # PPO trainers' approx_kl: a diverging run says so once
     stop_signal.install()
     tr.start_segment()
     bar = _progress.make_progress("samples", " ".join(f"{name} {{task.fields[{name}]}}" for name, _, _ in fields))
@@ -294,6 +297,11 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
             if evaluate is not None and cfg.eval_every and tr.iteration % cfg.eval_every == 0 and d.main:
                 stats.update(evaluate(tr))
             last = {**last, **stats}
+            if "approx_kl" in stats and kls.maxlen:
+                kls.append(stats["approx_kl"])
+                if len(kls) == kls.maxlen and (msg := kl_warning(kls)) and d.main:
+                    _progress.info(msg)
+                    kls = deque(maxlen=0)
             if log is not None:
                 log.log(stats)
             bar.update(task, advance=per_it, **{name: fmt.format(last[key]) if key in last else "-"

@@ -284,6 +284,7 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
 
     wrote = False
     kls: deque = deque(maxlen=KL_WINDOW)  # PPO trainers' approx_kl: a diverging run says so once
+    kl_warned = False
     stop_signal.install()
     tr.start_segment()
     bar = _progress.make_progress("samples", " ".join(f"{name} {{task.fields[{name}]}}" for name, _, _ in fields))
@@ -297,11 +298,11 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
             if evaluate is not None and cfg.eval_every and tr.iteration % cfg.eval_every == 0 and d.main:
                 stats.update(evaluate(tr))
             last = {**last, **stats}
-            if "approx_kl" in stats and kls.maxlen:
+            if "approx_kl" in stats and not kl_warned:
                 kls.append(stats["approx_kl"])
                 if len(kls) == kls.maxlen and (msg := kl_warning(kls)) and d.main:
                     _progress.info(msg)
-                    kls = deque(maxlen=0)
+                    kl_warned = True
             if log is not None:
                 log.log(stats)
             bar.update(task, advance=per_it, **{name: fmt.format(last[key]) if key in last else "-"

@@ -364,6 +364,21 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     assert "| navigation: hybrid above discrete+, share of the distance closed | hybrid 50.0 %, discrete+ 60.0 % | does not hold |" in out
     assert "| navigation: hybrid below discrete+, falls per episode | hybrid 0.25, discrete+ 0.12 | does not hold |" in out
     assert "| coverage, equal n (4) |" in out and "| hybrid-m1 | 5 | 1.500 | 10.0 % | 30.0 % | 30.0 % | 25.0 % |" in out
+    # the tasks of Tables 2-3, against the continuous prior at each lr it ran with, read from the test-clip
+    # evaluations (success higher, MPJPE lower is better)
+    for run, success, mpjpe in (("inbetween_hybrid", 0.70, 80.0), ("inbetween_continuous_lr5e-5", 0.75, 85.0),
+                                ("hmd_hybrid", 0.9, 90.0)):
+        (runs / run).mkdir()
+        task = run.split("_")[0]
+        (runs / run / f"eval_{task}_test.json").write_text(json.dumps({"success_rate": success,
+                                                                       "mpjpe_mm_mean": mpjpe}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert ("| in-betweening (Table 2): hybrid above continuous (lr 5e-5), test success | hybrid 70.0 %, "
+            "continuous (lr 5e-5) 75.0 % | does not hold |") in out
+    assert ("| in-betweening (Table 2): hybrid below continuous (lr 5e-5), test MPJPE | hybrid 80.0 mm, "
+            "continuous (lr 5e-5) 85.0 mm | holds |") in out
+    assert "lr 3e-4" not in out and "head tracking (Table 3)" not in out  # runs that are not there claim nothing
 
 
 def test_the_status_says_where_each_run_stands(tmp_path):

@@ -300,7 +300,7 @@ stage_plots() {
     # r_task: the task reward per step, in [0, 1]: the return normalised by its maximum
     plot navigation r_task,episode_seconds,eval_reached_share,eval_approach_share,eval_falls_per_episode \
         "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1" "$R/nav_continuous_lr5e-5"
-    plot codebooks r_task,episode_seconds,eval_reached_share "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
+    plot codebooks r_task,episode_seconds,eval_approach_share,eval_falls_per_episode "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
         "$R/nav_hybrid_m4" "$R/nav_hybrid"
     plot inbetween r_task,episode_seconds,eval_success_rate,eval_mpjpe_mm_mean "$R/inbetween_hybrid" \
         "$R/inbetween_continuous" "$R/inbetween_continuous_lr5e-5"

@@ -154,6 +154,14 @@ def orderings(R: Path) -> str:
               (o, nav[other]), "approach_share", True, pct)
         claim(f"navigation: hybrid below {o}, falls per episode", ("hybrid", nav["hybrid"]),
               (o, nav[other]), "falls_per_episode", False, "{:.2f}".format)
+    # Fig. 13: RVQ abstracts the task policy's action space, so a policy over the first M codebooks
+    # does better than one over all of them (nav_hybrid: every codebook)
+    for m in (1, 2, 4):
+        e = load(R / f"nav_hybrid_m{m}" / "eval_navigation.json") or {}
+        claim(f"navigation (Fig. 13): hybrid over {m} codebook{'s' * (m > 1)} above all, share of the distance "
+              "closed", (f"M={m}", e), ("all", nav["hybrid"]), "approach_share", True, pct)
+        claim(f"navigation (Fig. 13): hybrid over {m} codebook{'s' * (m > 1)} below all, falls per episode",
+              (f"M={m}", e), ("all", nav["hybrid"]), "falls_per_episode", False, "{:.2f}".format)
     for task, what in (("inbetween", "in-betweening (Table 2)"), ("hmd", "head tracking (Table 3)")):
         ev = {k: load(R / f"{task}_{k}" / f"eval_{task}_test.json") or {}
               for k in ("hybrid", "continuous", "continuous_lr5e-5")}

@@ -379,6 +379,16 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     assert ("| in-betweening (Table 2): hybrid below continuous (lr 5e-5), test MPJPE | hybrid 80.0 mm, "
             "continuous (lr 5e-5) 85.0 mm | holds |") in out
     assert "lr 3e-4" not in out and "head tracking (Table 3)" not in out  # runs that are not there claim nothing
+    (runs / "nav_hybrid_m4").mkdir()
+    (runs / "nav_hybrid_m4" / "eval_navigation.json").write_text(json.dumps({"approach_share": 0.55,
+                                                                           "falls_per_episode": 0.5}))
+    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                         timeout=60).stdout
+    assert ("| navigation (Fig. 13): hybrid over 4 codebooks above all, share of the distance closed | "
+            "M=4 55.0 %, all 50.0 % | holds |") in out
+    assert ("| navigation (Fig. 13): hybrid over 4 codebooks below all, falls per episode | "
+            "M=4 0.50, all 0.25 | does not hold |") in out
+    assert "over 1 codebook" not in out
 
 
 def test_the_status_says_where_each_run_stands(tmp_path):

@@ -325,19 +325,24 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     right direction (a lower distance and MPJPE are better, a higher coverage and success)."""
     tables = ROOT / "scripts" / "physics_tables.py"
     runs = tmp_path / "runs"
-    (runs / "table1").mkdir(parents=True)
+
+    def put(rel, obj):
+        (runs / rel).parent.mkdir(parents=True, exist_ok=True)
+        (runs / rel).write_text(json.dumps(obj))
+
+    def printed():
+        return subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
+                              timeout=60).stdout
+
     row = lambda tag, d, c: {"motion": f"runs/table1/{tag}.h5", "transitions": 5, "distance_mean": d,
                              "filtered_rate": 0.1, "coverage": c, "coverage_within_threshold": c, "jitter_m_s3": 1.0}
-    (runs / "table1" / "table1.json").write_text(json.dumps({
-        "threshold": {"value": 3.0, "definition": "x"}, "dataset": {"transitions": 10, "jitter_m_s3": 1.0},
-        "rows": [row("hybrid-m1", 1.5, 0.30), row("discrete+-m1", 2.0, 0.40)]}))
+    put("table1/table1.json", {"threshold": {"value": 3.0, "definition": "x"},
+                               "dataset": {"transitions": 10, "jitter_m_s3": 1.0},
+                               "rows": [row("hybrid-m1", 1.5, 0.30), row("discrete+-m1", 2.0, 0.40)]})
     for kind, success, mpjpe in (("hybrid", 0.93, 49.0), ("hybrid-vq", 0.95, 52.0), ("discrete+", 0.90, 50.0),
                                  ("discrete", 0.80, 55.0)):
-        (runs / f"prior_{kind}").mkdir()
-        (runs / f"prior_{kind}" / "eval_test.json").write_text(json.dumps({"overall": {"success_rate": success,
-                                                                                        "mpjpe_mm": mpjpe}}))
-    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
-                         timeout=60).stdout
+        put(f"prior_{kind}/eval_test.json", {"overall": {"success_rate": success, "mpjpe_mm": mpjpe}})
+    out = printed()
     assert "| hybrid(1) distance below discrete+(1) (Table 1) | hybrid-m1 1.500, discrete+-m1 2.000 | holds |" in out
     assert "| hybrid(1) coverage above discrete+(1) (Table 1) | hybrid-m1 30.0 %, discrete+-m1 40.0 % | does not hold |" in out
     assert "discrete+ above discrete, test clips played to the end | discrete+ 90.0 %, discrete 80.0 % | holds |" in out
@@ -349,18 +354,13 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     # fewer transitions to cover with)
     rows = [{**row("hybrid-m1", 1.5, 0.30), "coverage_equal_n": 0.25, "coverage_n": 4},
             {**row("discrete+-m1", 2.0, 0.40), "coverage_equal_n": 0.20, "coverage_n": 4}]
-    (runs / "table1" / "table1.json").write_text(json.dumps({
-        "threshold": {"value": 3.0, "definition": "x"}, "dataset": {"transitions": 10, "jitter_m_s3": 1.0},
-        "rows": rows}))
-    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
-                         timeout=60).stdout
+    put("table1/table1.json", {"threshold": {"value": 3.0, "definition": "x"},
+                               "dataset": {"transitions": 10, "jitter_m_s3": 1.0}, "rows": rows})
+    out = printed()
     assert "| hybrid(1) coverage equal n above discrete+(1) (Table 1) | hybrid-m1 25.0 %, discrete+-m1 20.0 % | holds |" in out
     for kind, closed, falls in (("hybrid", 0.5, 0.25), ("discrete+", 0.6, 0.125)):
-        (runs / f"nav_{kind}").mkdir()
-        (runs / f"nav_{kind}" / "eval_navigation.json").write_text(json.dumps({"approach_share": closed,
-                                                                               "falls_per_episode": falls}))
-    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
-                         timeout=60).stdout
+        put(f"nav_{kind}/eval_navigation.json", {"approach_share": closed, "falls_per_episode": falls})
+    out = printed()
     assert "| navigation: hybrid above discrete+, share of the distance closed | hybrid 50.0 %, discrete+ 60.0 % | does not hold |" in out
     assert "| navigation: hybrid below discrete+, falls per episode | hybrid 0.25, discrete+ 0.12 | does not hold |" in out
     assert "| coverage, equal n (4) |" in out and "| hybrid-m1 | 5 | 1.500 | 10.0 % | 30.0 % | 30.0 % | 25.0 % |" in out
@@ -368,22 +368,15 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     # evaluations (success higher, MPJPE lower is better)
     for run, success, mpjpe in (("inbetween_hybrid", 0.70, 80.0), ("inbetween_continuous_lr5e-5", 0.75, 85.0),
                                 ("hmd_hybrid", 0.9, 90.0)):
-        (runs / run).mkdir()
-        task = run.split("_")[0]
-        (runs / run / f"eval_{task}_test.json").write_text(json.dumps({"success_rate": success,
-                                                                       "mpjpe_mm_mean": mpjpe}))
-    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
-                         timeout=60).stdout
+        put(f"{run}/eval_{run.split('_')[0]}_test.json", {"success_rate": success, "mpjpe_mm_mean": mpjpe})
+    out = printed()
     assert ("| in-betweening (Table 2): hybrid above continuous (lr 5e-5), test success | hybrid 70.0 %, "
             "continuous (lr 5e-5) 75.0 % | does not hold |") in out
     assert ("| in-betweening (Table 2): hybrid below continuous (lr 5e-5), test MPJPE | hybrid 80.0 mm, "
             "continuous (lr 5e-5) 85.0 mm | holds |") in out
     assert "lr 3e-4" not in out and "head tracking (Table 3)" not in out  # runs that are not there claim nothing
-    (runs / "nav_hybrid_m4").mkdir()
-    (runs / "nav_hybrid_m4" / "eval_navigation.json").write_text(json.dumps({"approach_share": 0.55,
-                                                                           "falls_per_episode": 0.5}))
-    out = subprocess.run([sys.executable, str(tables), "--runs", str(runs)], capture_output=True, text=True,
-                         timeout=60).stdout
+    put("nav_hybrid_m4/eval_navigation.json", {"approach_share": 0.55, "falls_per_episode": 0.5})
+    out = printed()
     assert ("| navigation (Fig. 13): hybrid over 4 codebooks above all, share of the distance closed | "
             "M=4 55.0 %, all 50.0 % | holds |") in out
     assert ("| navigation (Fig. 13): hybrid over 4 codebooks below all, falls per episode | "

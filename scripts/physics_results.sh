@@ -27,7 +27,8 @@
 #   prioreval Table 1 (motion matching of every prior's generations)
 #   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1; std 0.2 at lr 5e-5), TASK_IT iterations each (issue 16)
 #   tasks     in-betweening and head tracking over hybrid and continuous (lr 5e-5), hybrid with 1, 2, 4 codebooks on
-#             navigation (Fig. 13), then the continuous prior at the recipes' lr 3e-4
+#             navigation (Fig. 13), then the continuous prior at the recipes' lr 3e-4, then discrete+ with 4
+#             codebooks (the hybrid's best M, for the two at equal M)
 #   taskeval  every task run evaluated; the thrown balls on the navigation runs (every 0.3 s, and
 #             every $BALL_PERIODS s: "1 3 1000" unless set)
 #   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
@@ -223,6 +224,8 @@ stage_tasks() {
     for t in inbetween hmd; do
         task "$t" continuous "$R/${t}_continuous"
     done
+    # Fig. 13's best M for the hybrid (4 of 8) on discrete+ too: the two priors compared at equal M
+    task navigation discrete+ "$R/nav_discrete+_m4" --codebooks 4
 }
 
 # unfinished DIR: "I of N" when DIR's checkpoint stands before the iterations its config asks for
@@ -301,7 +304,7 @@ stage_plots() {
     plot navigation r_task,episode_seconds,eval_reached_share,eval_approach_share,eval_falls_per_episode \
         "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1" "$R/nav_continuous_lr5e-5"
     plot codebooks r_task,episode_seconds,eval_approach_share,eval_falls_per_episode "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
-        "$R/nav_hybrid_m4" "$R/nav_hybrid"
+        "$R/nav_hybrid_m4" "$R/nav_hybrid" "$R/nav_discrete+_m4"
     plot inbetween r_task,episode_seconds,eval_success_rate,eval_mpjpe_mm_mean "$R/inbetween_hybrid" \
         "$R/inbetween_continuous" "$R/inbetween_continuous_lr5e-5"
     plot hmd r_task,episode_seconds,eval_success_rate,eval_head_error_mm_mean "$R/hmd_hybrid" "$R/hmd_continuous" \

@@ -140,6 +140,11 @@ def test_tasks_wait_for_their_prior(tmp_path):
                     for k in ("hybrid", "continuous_lr5e-5")] + [
         (f"nav_hybrid_m{m}", []) for m in (1, 2, 4)] + [("inbetween_continuous", []), ("hmd_continuous", [])]
     assert all(a[a.index("--codebooks") + 1] == out_of(a)[-1] for a in cmds if "--codebooks" in a)
+    # with the discrete+ prior there, last: discrete+ over the hybrid's best M (Fig. 13), for the two at equal M
+    (tmp_path / "all").mkdir()
+    cmds = queue(tmp_path / "all", "tasks", checkpoints=["prior_hybrid", "prior_continuous", "prior_discrete+"])
+    assert [out_of(a) for a in cmds][-2:] == ["hmd_continuous", "nav_discrete+_m4"]
+    assert cmds[-1][cmds[-1].index("--codebooks") + 1] == "4" and "runs/prior_discrete+" in " ".join(cmds[-1])
 
 
 def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):

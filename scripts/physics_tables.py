@@ -162,6 +162,13 @@ def orderings(R: Path) -> str:
               "closed", (f"M={m}", e), ("all", nav["hybrid"]), "approach_share", True, pct)
         claim(f"navigation (Fig. 13): hybrid over {m} codebook{'s' * (m > 1)} below all, falls per episode",
               (f"M={m}", e), ("all", nav["hybrid"]), "falls_per_episode", False, "{:.2f}".format)
+    # and the hybrid against discrete+ at equal M, where discrete+ ran with fewer codebooks too
+    for m in (1, 2, 4):
+        h, d = (load(R / f"nav_{k}_m{m}" / "eval_navigation.json") or {} for k in ("hybrid", "discrete+"))
+        claim(f"navigation: hybrid above discrete+, both over {m} codebook{'s' * (m > 1)}, share of the distance "
+              "closed", ("hybrid", h), ("discrete+", d), "approach_share", True, pct)
+        claim(f"navigation: hybrid below discrete+, both over {m} codebook{'s' * (m > 1)}, falls per episode",
+              ("hybrid", h), ("discrete+", d), "falls_per_episode", False, "{:.2f}".format)
     for task, what in (("inbetween", "in-betweening (Table 2)"), ("hmd", "head tracking (Table 3)")):
         ev = {k: load(R / f"{task}_{k}" / f"eval_{task}_test.json") or {}
               for k in ("hybrid", "continuous", "continuous_lr5e-5")}

@@ -387,6 +387,10 @@ def test_the_orderings_are_read_from_the_outputs(tmp_path):
     assert ("| navigation (Fig. 13): hybrid over 4 codebooks below all, falls per episode | "
             "M=4 0.50, all 0.25 | does not hold |") in out
     assert "over 1 codebook" not in out
+    put("nav_discrete+_m4/eval_navigation.json", {"approach_share": 0.6, "falls_per_episode": 0.125})
+    out = printed()
+    assert ("| navigation: hybrid above discrete+, both over 4 codebooks, share of the distance closed | "
+            "hybrid 55.0 %, discrete+ 60.0 % | does not hold |") in out
 
 
 def test_the_status_says_where_each_run_stands(tmp_path):

@@ -5,8 +5,10 @@ resumes exactly, and the bundle evaluates and renders."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +26,8 @@ from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.reference import load_library
 from tiny_runs import small_prior_config, tiny_prior_bundle
+
+ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -225,6 +229,13 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     assert not (tmp_path / "straight" / "eval_hmd.json").exists()
     assert (tmp_path / "straight" / "eval_navigation.json").stat().st_mtime_ns == stamp
     _ = load_prior  # the prior still loads on its own after all this
+
+    # scripts/codebook_entropy.py: one entropy per active codebook, each within [0, ln K]
+    spec = importlib.util.spec_from_file_location("codebook_entropy", ROOT / "scripts" / "codebook_entropy.py")
+    ce = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ce)
+    h, top = ce.codebook_entropy(tmp_path / "straight", episodes=2)
+    assert len(h) == 2 and top == pytest.approx(np.log(ac.policy.classes)) and all(0 <= x <= top + 1e-5 for x in h)
 
     # Thrown balls at the trained policy, zero-shot, on the run's humanoid with a pool of balls.
     from motok.control.perturb import perturb_run

@@ -23,7 +23,7 @@ def codebook_entropy(run, episodes: int) -> tuple[list[float], float]:
 
     def recorded(x):  # every action the evaluation draws goes through here
         lp = log_probs(x)
-        seen.append(-(lp.exp() * lp).sum(-1))
+        seen.append(ac.policy.entropies(lp))
         return lp
 
     ac.policy.log_probs = recorded

@@ -116,8 +116,12 @@ class MultiCategoricalPolicy(nn.Module):
             a = torch.multinomial(lp.exp().flatten(0, -2), 1).view(lp.shape[:-1])
         return a, lp.gather(-1, a[..., None]).squeeze(-1).sum(-1)
 
+    @staticmethod
+    def entropies(lp: torch.Tensor) -> torch.Tensor:
+        """``(..., M)``: each codebook's entropy from ``log_probs``' ``(..., M, K)``."""
+        return -(lp.exp() * lp).sum(-1)
+
     def evaluate(self, x: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lp = self.log_probs(x)
         logp = lp.gather(-1, a.long()[..., None]).squeeze(-1).sum(-1)
-        entropy = -(lp.exp() * lp).sum(-1).sum(-1)
-        return logp, entropy
+        return logp, self.entropies(lp).sum(-1)

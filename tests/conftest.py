@@ -27,6 +27,22 @@ def one_thread():
 
 
 @pytest.fixture(scope="session")
+def script():
+    """``script(name)``: the repository's ``scripts/NAME.py`` as a module (scripts are no package)."""
+    import importlib.util
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, scripts / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
+
+
+@pytest.fixture(scope="session")
 def data_root() -> Path:
     return resolve_data_root()
 

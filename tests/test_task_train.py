@@ -5,10 +5,8 @@ resumes exactly, and the bundle evaluates and renders."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,8 +24,6 @@ from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.reference import load_library
 from tiny_runs import small_prior_config, tiny_prior_bundle
-
-ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -183,7 +179,7 @@ def test_ppo_learns_which_codes_keep_the_character_up_and_never_touches_the_prio
 
 # ---------------------------------------------------------------------- the bundle
 
-def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
+def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path, script):
     cfg = small_cfg(iterations=4, save_every=2, eval_every=2, eval_episodes=4)
     cfg.env.num_envs = 4
     cfg.ppo = replace(cfg.ppo, horizon=8, minibatch_size=16, epochs=1)
@@ -231,10 +227,7 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path):
     _ = load_prior  # the prior still loads on its own after all this
 
     # scripts/codebook_entropy.py: one entropy per active codebook, each within [0, ln K]
-    spec = importlib.util.spec_from_file_location("codebook_entropy", ROOT / "scripts" / "codebook_entropy.py")
-    ce = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ce)
-    h, top = ce.codebook_entropy(tmp_path / "straight", episodes=2)
+    h, top = script("codebook_entropy").codebook_entropy(tmp_path / "straight", episodes=2)
     assert len(h) == 2 and top == pytest.approx(np.log(ac.policy.classes)) and all(0 <= x <= top + 1e-5 for x in h)
 
     # Thrown balls at the trained policy, zero-shot, on the run's humanoid with a pool of balls.

@@ -147,16 +147,11 @@ def test_floating_motion_is_placed_on_the_floor_and_short_clips_fail_alone(pd_co
     json.dumps(res)  # results are plain JSON
 
 
-def test_track_failures_groups_the_report_and_replays_the_failures(pd_controller, small_dataset, tmp_path):
+def test_track_failures_groups_the_report_and_replays_the_failures(pd_controller, small_dataset, tmp_path, script):
     """scripts/track_failures.py: per content label, the shares and errors of a track report, and
     the failed clips played again to the same step (the tracking is deterministic); plain PD falls:
     its head ends below the reference's."""
-    import importlib.util
-    from pathlib import Path
-    spec = importlib.util.spec_from_file_location(
-        "track_failures", Path(__file__).resolve().parent.parent / "scripts" / "track_failures.py")
-    tf = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tf)
+    tf = script("track_failures")
     with MotionFile(small_dataset) as mf:
         split = next(s for s in ("test", "val", "train") if mf.split_indices(s))
     res = track(pd_controller, small_dataset, tmp_path / "sim.h5", split=split, clips="dataset-2_walk*")

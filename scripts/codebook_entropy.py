@@ -5,7 +5,7 @@
 A policy over M residual codebooks has one categorical per codebook; its logged `entropy` is their
 sum. This splits it, on the states the policy itself visits (the task's own evaluation, seed 0):
 a codebook whose entropy stays near ln(codes) is one the policy never committed to
-(docs/results.md, "active codebooks (Fig. 13 form)")."""
+(docs/results.md, "Active codebooks (Fig. 13 form)")."""
 import argparse
 import math
 

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The physics results of docs/results.md (issues 14-17) as one resumable queue, for a machine that
-# may be handed back to you, or not, between sessions. Every training resumes exactly from its
-# last checkpoint when its run folder holds one; a finished training or an evaluation whose output
-# exists costs nothing; so run it again, as it is, to continue wherever it stopped.
+# The physics results of docs/results.md (the expert, the priors, the tasks, text to physics) as
+# one resumable queue, for a machine that may be handed back to you, or not, between sessions.
+# Every training resumes exactly from its last checkpoint when its run folder holds one; a finished
+# training or an evaluation whose output exists costs nothing; so run it again, as it is, to
+# continue wherever it stopped.
 #
 #   scripts/physics_results.sh                 # every stage, in the order below
 #   scripts/physics_results.sh priors tasks    # only these stages (names below)
@@ -21,21 +22,21 @@
 #
 # Stages, most important first (each waits for what it reads):
 #   data      runs/bandai2.h5, Bandai-Namco set 2 preprocessed
-#   expert    the whole-dataset expert (issue 14), to EXPERT_IT iterations, then its val/test evaluations
-#   priors    hybrid, continuous, discrete+, discrete, hybrid-vq distilled from it, PRIOR_IT iterations each (issue 15),
+#   expert    the whole-dataset expert, to EXPERT_IT iterations, then its val/test evaluations
+#   priors    hybrid, continuous, discrete+, discrete, hybrid-vq distilled from it, PRIOR_IT iterations each (Fig. 4, Table 1),
 #             each evaluated at once: imitation on the train and test clips (Fig. 4), its Table 1 generations
 #   prioreval Table 1 (motion matching of every prior's generations)
-#   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1; std 0.2 at lr 5e-5), TASK_IT iterations each (issue 16)
+#   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1; std 0.2 at lr 5e-5), TASK_IT iterations each (the task tables)
 #   tasks     in-betweening and head tracking over hybrid and continuous (lr 5e-5), hybrid with 1, 2, 4 codebooks on
 #             navigation (Fig. 13), then the continuous prior at the recipes' lr 3e-4, then discrete+ with 4
 #             codebooks (the hybrid's best M, for the two at equal M)
 #   taskeval  every task run evaluated; the thrown balls on the navigation runs (every 0.3 s, and
 #             every $BALL_PERIODS s: "1 3 1000" unless set)
-#   t2p       text to physics (issue 17): tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
+#   t2p       text to physics: tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
-# On a fresh machine, the shortest chains first: text to physics (issue 17) needs only the hybrid
-# prior, the tasks (issue 16) the continuous and discrete+ ones too; then the rest (two more
+# On a fresh machine, the shortest chains first: text to physics needs only the hybrid
+# prior, the task tables the continuous and discrete+ ones too; then the rest (two more
 # priors, Table 1):
 #   PRIORS=hybrid TABLE1=0 scripts/physics_results.sh data expert priors t2p
 #   PRIORS="hybrid continuous discrete+" TABLE1=0 scripts/physics_results.sh priors nav tasks taskeval
@@ -49,7 +50,7 @@
 # thrown-ball episodes; KIN_IT (unset: the recipes') iterations of the evaluator, tokenizer and GPT
 # of t2p, and T2M_RECIPE=recipes/eval/t2m.yaml its protocol (small values make a dry run of the whole
 # queue at toy size). PRIOR_IT is half the
-# recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/results.md). Both
+# recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/history.md). Both
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
 # Time on 2 cores: expert 3.0-4.1 h (measured on three machines), priors 2.3 h (28 min each, measured

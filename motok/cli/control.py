@@ -76,7 +76,8 @@ def eval_cmd(
     device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
-    """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall."""
+    """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall; the feet's
+    skating, sole slip, sole penetration and jitter beside the clips' own."""
     from motok.control.expert import evaluate_run
 
     res = run(evaluate_run, run_dir, data=data, clips=clips, split=split, render=render, termination=termination,
@@ -125,6 +126,12 @@ def _summary_line(res: dict) -> None:
     results.print(f"{o['clips']} clips, {o['success_rate']:.1%} played to the end ({o['termination']} ends a "
                    f"clip); {o['success_rate_any_body']:.1%} also kept every single body within that distance; "
                    f"MPJPE {o['mpjpe_mm']:.1f} mm, G-MPJPE {o['g_mpjpe_mm']:.1f} mm")
+    if "feet" in res:
+        f = res["feet"]
+        line = lambda w: (f"skating {f[w]['skate_cm_s']:.2f} cm/s, sole slip {f[w]['sole_slip_cm_s']:.1f} cm/s, "  # noqa: E731
+                          f"sole penetration {f[w]['sole_penetration_mm']:.1f} mm, jitter {f[w]['jitter_m_s3']:.0f} m/s^3")
+        results.print(f"feet, simulated: {line('simulated')}\nfeet, the clips: {line('reference')} "
+                      f"(same frames, at the control rate)", soft_wrap=True, highlight=False)
     if "video" in res:
         results.print(f"wrote {res['video']}", soft_wrap=True, highlight=False)
 

@@ -16,10 +16,11 @@ from motok.control.rollout import as_tensor
 from motok.control.tasks.base import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.eval.metrics import acceleration_error, mpjpe, velocity_error
+from motok.eval.physical import PhysicalSums, clip_sums
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
 from motok.sim.reference import ReferenceLibrary
-from motok.sim.soles import SlipSums, Soles, reference_corners, slip_sums
+from motok.sim.soles import SlipSums, Soles, reference_corners, slip_sums, soles
 
 ERRORS = ("mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm")
 
@@ -101,8 +102,25 @@ def slip_report(sim: SlipSums, ref: SlipSums) -> dict:
     return {"simulated": sim.result(), "reference": ref.result()}
 
 
+FEET = ("skate_cm_s", "sole_slip_cm_s", "sole_penetration_mm", "jitter_m_s3")
+
+
+def clip_feet(out: dict, k: int, feet) -> tuple[PhysicalSums, PhysicalSums]:
+    """Joint skating and jitter (``motok.eval.physical``, Y up as the data) of the simulated bodies
+    and of their reference over the states environment ``k`` of a :func:`play` played."""
+    a = out["alive"][k]
+    hz = 1.0 / out["dt"]
+    return tuple(clip_sums(out[key][k, a][..., [1, 2, 0]], hz, feet) for key in ("pos", "ref"))
+
+
+def feet_report(joints: tuple[PhysicalSums, PhysicalSums], sole: tuple[SlipSums, SlipSums]) -> dict:
+    """``{"simulated": {...}, "reference": {...}}``: :data:`FEET` and the sole contact fraction of each,
+    over the same states at the control rate, so the two rows compare like with like."""
+    return {who: {**j.result(), **s.result()} for who, j, s in zip(("simulated", "reference"), joints, sole)}
+
+
 def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConfig, task: ImitationTaskConfig,
-             action: ActionConfig, render=None, batch: int = 256, clips=None) -> dict:
+             action: ActionConfig, render=None, batch: int = 256, clips=None, feet: bool = False) -> dict:
     """Every clip from its first frame with the most likely action, until the clip's end (success)
     or early termination (the task's criterion; ``success_rate_any_body`` also requires every
     single body to have stayed within the distance, the stricter test). Errors over the frames
@@ -111,7 +129,11 @@ def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConf
 
     Clips are played ``batch`` at a time, sorted by length, so a batch ends with its longest clip
     and a long clip does not keep thousands of finished environments stepping. ``clips``: indices
-    of the library's clips to play (default: all)."""
+    of the library's clips to play (default: all).
+
+    With ``feet`` the result also has ``feet`` (:func:`feet_report`: joint skating, sole slip, sole
+    penetration and jitter of the simulated motion beside the reference's over the frames played)
+    and each clip its simulated ``skate_cm_s`` and ``sole_slip_cm_s``."""
     tcfg = replace(task, max_episode_seconds=1e9)
     chosen = np.arange(len(lib)) if clips is None else np.asarray(clips, dtype=np.int64)
     order = chosen[np.argsort(-lib.lengths[chosen], kind="stable")]
@@ -120,11 +142,15 @@ def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConf
     success, worst = np.zeros(len(lib), bool), np.zeros(len(lib))
     if render is not None and 0 not in chosen:
         raise ValueError("render draws the library's first clip: include clip 0")
+    sole = soles(hum) if feet else None
+    skel = hum.skeleton
+    foot_joints = (tuple(skel.feet_left), tuple(skel.feet_right))
+    joint_sums, sole_sums = (PhysicalSums(), PhysicalSums()), (SlipSums(), SlipSums())
     for ids in chunks:
         first = render is not None and 0 in ids
         if first:  # the rendered clip leads its batch, so its qpos are row 0
             ids = np.concatenate([[0], ids[ids != 0]])
-        out = play(hum, ac, lib, ids, sim, tcfg, action, keep_qpos=first)
+        out = play(hum, ac, lib, ids, sim, tcfg, action, keep_qpos=first, sole=sole)
         if first:
             video_qpos = (out["qpos"], int(out["played"][0]))
         for k, i in enumerate(ids):
@@ -139,10 +165,19 @@ def evaluate(hum: Humanoid, ac: ActorCritic, lib: ReferenceLibrary, sim: SimConf
                 "root_vel_err_mm": float(velocity_error(p[:, :1], r[:, :1]).mean()) if len(p) > 1 else float("nan"),
                 "root_acc_err_mm": float(acceleration_error(p[:, :1], r[:, :1]).mean()) if len(p) > 2
                 else float("nan")}
+            if feet:
+                j_sim, j_ref = clip_feet(out, k, foot_joints)
+                s_sim, s_ref = clip_slip(out, k)
+                for total, one in zip((*joint_sums, *sole_sums), (j_sim, j_ref, s_sim, s_ref)):
+                    total.add(one)
+                per[lib.names[i]].update(skate_cm_s=j_sim.result()["skate_cm_s"],
+                                         sole_slip_cm_s=s_sim.result()["sole_slip_cm_s"])
     per = {lib.names[i]: per[lib.names[i]] for i in chosen}
     strict = (success & (worst <= tcfg.termination_distance))[chosen]
     out = {"overall": {"clips": len(chosen), "termination": f"{tcfg.termination} body error > {tcfg.termination_distance:g} m",
                        "success_rate_any_body": float(strict.mean()), **summarise(per)}, "clips": per}
+    if feet:
+        out["feet"] = feet_report(joint_sums, sole_sums)
     if render is not None:
         from motok.sim.render import render_trajectory
         qpos, played = video_qpos

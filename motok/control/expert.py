@@ -44,7 +44,7 @@ from motok.data.dataset import select_clips
 from motok.distributed import Dist, gather
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
-from motok.sim.humanoid import Humanoid, load_humanoid
+from motok.sim.humanoid import Humanoid, config_difference, load_humanoid
 from motok.sim.reference import ReferenceLibrary
 
 KIND = "control-expert"
@@ -262,6 +262,12 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
     run = Path(run)
     if resume and (run / "humanoid.xml").exists():
         hum = load_humanoid(run / "humanoid.xml")
+        if humanoid is not None:  # a resume continues in the run's world, never silently in another
+            other = load_humanoid(humanoid)
+            if runner.mjcf_hash(other) != runner.mjcf_hash(hum):
+                what = config_difference(hum, other) or "its geometry or gains"
+                raise UserError(f"--humanoid {humanoid}: {run} was trained on another humanoid ({what}); "
+                                "resume without --humanoid, or train a new run on it")
     elif init is not None:  # the warm start's humanoid, so its weights mean the same joints
         hum = load_humanoid(Path(init) / "humanoid.xml")
     else:
@@ -295,7 +301,7 @@ def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None 
         cfg.task.termination_distance = distance
     cfg.env.on(device)
     src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split, hint="; pass --data")
-    res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch)
+    res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch, feet=True)
     res["groups"] = by_group(res["clips"])
     res["checkpoint"] = runner.checkpoint_info(meta)
     prov = Provenance(command=command_line(), config={"run": str(run), "clips": clips, "split": split,

@@ -75,6 +75,13 @@ class HumanoidConfig:
     jacobian: str = "sparse"  # "auto" | "dense" | "sparse"
     islands: bool = False  # one humanoid is one island: finding it every step only costs (1.02-1.05x)
     max_frames: int = 20000  # frames sampled from the dataset for geometry and ranges
+    # The contact model (docs/sim.md "Feet"): part of the MJCF and of its metadata, so a controller
+    # trained on one is never resumed or evaluated on another by mistake. The defaults are MuJoCo's.
+    cone: str = "pyramidal"  # friction cone: "pyramidal" | "elliptic"
+    impratio: float = 1.0  # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
+    noslip_iterations: int = 0  # MuJoCo's no-slip post-solve on the friction rows (0: off)
+    contact_solref: tuple[float, float] = (0.02, 1.0)  # (time constant s, damping ratio) of every contact
+    contact_solimp: tuple[float, float, float] = (0.9, 0.95, 0.001)  # (dmin, dmax, width m) of every contact
 
     def __post_init__(self):
         legacy = {"true": "all", "false": "none"}  # the option used to be a boolean
@@ -86,9 +93,31 @@ class HumanoidConfig:
             raise HumanoidError(f"jacobian must be auto, dense or sparse, not {self.jacobian!r}")
         if self.solver_iterations < 1 or self.ls_iterations < 1:
             raise HumanoidError("solver_iterations and ls_iterations must be at least 1")
+        if self.cone not in ("pyramidal", "elliptic"):
+            raise HumanoidError(f"cone must be pyramidal or elliptic, not {self.cone!r}")
+        if not (np.isfinite(self.impratio) and self.impratio >= 1):
+            raise HumanoidError(f"impratio must be a finite number >= 1, not {self.impratio!r}")
+        if self.noslip_iterations < 0:
+            raise HumanoidError(f"noslip_iterations must be >= 0, not {self.noslip_iterations!r}")
+        self.contact_solref = tuple(float(v) for v in self.contact_solref)
+        self.contact_solimp = tuple(float(v) for v in self.contact_solimp)
+        tc, dr = self.contact_solref if len(self.contact_solref) == 2 else (float("nan"),) * 2
+        if not (np.isfinite(tc) and np.isfinite(dr) and tc > 0 and dr > 0):
+            raise HumanoidError(f"contact_solref must be [time constant > 0, damping ratio > 0], not "
+                                f"{list(self.contact_solref)}")
+        lo, hi, width = self.contact_solimp if len(self.contact_solimp) == 3 else (float("nan"),) * 3
+        if not (0 < lo <= hi < 1 and width > 0):
+            raise HumanoidError(f"contact_solimp must be [dmin, dmax, width] with 0 < dmin <= dmax < 1 and "
+                                f"width > 0, not {list(self.contact_solimp)}")
+
+    def contact_model(self) -> dict:
+        """The fields that define the contact model, by name (what a resume on another humanoid compares)."""
+        return {k: getattr(self, k) for k in CONTACT_FIELDS}
 
 
 SELF_COLLISION = ("all", "data", "legs", "none")
+CONTACT_FIELDS = ("cone", "impratio", "noslip_iterations", "contact_solref", "contact_solimp", "friction",
+                  "self_collision", "timestep")
 
 
 @dataclass
@@ -201,6 +230,15 @@ class Humanoid:
     @property
     def nv(self) -> int:
         return 6 + len(self.hinge_qpos_adr)
+
+
+def config_difference(a: "Humanoid", b: "Humanoid") -> str:
+    """What differs between the build configs of two humanoids, contact model first, e.g.
+    ``"cone: pyramidal -> elliptic, impratio: 1 -> 10"``; empty when the configs agree."""
+    ca, cb = a.meta.get("config", {}), b.meta.get("config", {})
+    keys = [*CONTACT_FIELDS, *sorted(k for k in {*ca, *cb} if k not in CONTACT_FIELDS)]
+    fmt = lambda v: "unset" if v is None else (f"{v:g}" if isinstance(v, float) else str(v))  # noqa: E731
+    return ", ".join(f"{k}: {fmt(ca.get(k))} -> {fmt(cb.get(k))}" for k in keys if ca.get(k) != cb.get(k))
 
 
 def load_humanoid(path) -> Humanoid:

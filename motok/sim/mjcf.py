@@ -164,7 +164,7 @@ def contact_bits(layout: Layout, skeleton: Skeleton, mode: str) -> list[tuple[in
 _HEADER = """<mujoco model="motok_humanoid">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{timestep:.8g}" integrator="implicitfast" iterations="{it}" ls_iterations="{ls}"
-          jacobian="{jacobian}"/>
+          jacobian="{jacobian}" cone="{cone}" impratio="{impratio:.8g}" noslip_iterations="{noslip}"/>
   <visual><global offwidth="1280" offheight="720"/><quality shadowsize="2048"/></visual>
   <asset>
     <texture name="grid" type="2d" builtin="checker" rgb1=".82 .84 .86" rgb2=".7 .72 .76" width="512" height="512"/>
@@ -175,12 +175,13 @@ _HEADER = """<mujoco model="motok_humanoid">
   <default>
     <joint armature="{armature:g}" damping="0" limited="true"/>
     <geom density="{density:.9g}" friction="{friction:g} 0.005 0.0001" material="body" condim="3" contype="1"
-          conaffinity="1"/>
+          conaffinity="1" solref="{solref}" solimp="{solimp}"/>
     <position ctrllimited="true"/>
   </default>
   <worldbody>
     <light name="sun" pos="0 0 4" dir="0 0 -1" directional="true" castshadow="true" diffuse=".8 .8 .8"/>
-    <geom name="floor" type="plane" size="0 0 0.05" material="floor" contype="1" conaffinity="1"/>
+    <geom name="floor" type="plane" size="0 0 0.05" material="floor" contype="1" conaffinity="1" solref="{solref}"
+          solimp="{solimp}"/>
   </worldbody>
 </mujoco>"""
 
@@ -190,7 +191,9 @@ def mjcf_text(layout: Layout, geoms: dict, cfg: HumanoidConfig, density: float, 
     """The XML; ``bits``: per joint ``(contype, conaffinity)`` from :func:`contact_bits` (default: all collide)."""
     root = ET.fromstring(_HEADER.format(timestep=cfg.timestep, it=cfg.solver_iterations, ls=cfg.ls_iterations,
                                         jacobian=cfg.jacobian, armature=cfg.armature, density=density,
-                                        friction=cfg.friction))
+                                        friction=cfg.friction, cone=cfg.cone, impratio=cfg.impratio,
+                                        noslip=cfg.noslip_iterations, solref=_fmt(cfg.contact_solref),
+                                        solimp=_fmt(cfg.contact_solimp)))
     if not cfg.islands:
         ET.SubElement(root.find("option"), "flag", island="disable")
     elems = {-1: root.find("worldbody")}

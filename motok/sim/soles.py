@@ -71,35 +71,39 @@ class SlipSums:
     contact: int = 0
     fast: int = 0
     steps: int = 0
+    depth: float = 0.0  # summed depth (m) below the floor of the lowest corner, over the states looked at
+    states: int = 0
 
     def add(self, other: "SlipSums") -> "SlipSums":
-        self.slip += other.slip
-        self.contact += other.contact
-        self.fast += other.fast
-        self.steps += other.steps
+        for k in self.__dataclass_fields__:
+            setattr(self, k, getattr(self, k) + getattr(other, k))
         return self
 
     def result(self) -> dict:
         c = self.contact
         return {"sole_slip_cm_s": 100 * self.slip / c if c else float("nan"),
                 "sole_slip_ratio": self.fast / c if c else float("nan"),
-                "sole_contact_fraction": c / self.steps if self.steps else float("nan")}
+                "sole_contact_fraction": c / self.steps if self.steps else float("nan"),
+                "sole_penetration_mm": 1000 * self.depth / self.states if self.states else float("nan")}
 
 
 def slip_sums(corners: np.ndarray, dt: float, valid: np.ndarray | None = None,
               tolerance: float = TOLERANCE) -> SlipSums:
     """Sums of one or many clips of corner positions ``(..., T, K, 3)`` (MuJoCo frame, z up) sampled
     every ``dt`` seconds; ``valid`` ``(..., T)`` marks the states that belong to a clip (a step counts
-    when both its states do)."""
+    when both its states do). Penetration: how deep the lowest corner is below the floor, per state
+    (0 when above it), the geometry's measure, since a simulated body's joints never reach the floor."""
     c = np.asarray(corners, np.float64)
     touch = c[..., 2] <= tolerance  # (..., T, K)
     pair = touch[..., :-1, :] & touch[..., 1:, :]
-    both = np.ones(c.shape[:-2], bool) if valid is None else np.asarray(valid, bool)
-    both = (both[..., :-1] & both[..., 1:])[..., None]
+    valid = np.ones(c.shape[:-2], bool) if valid is None else np.asarray(valid, bool)
+    both = (valid[..., :-1] & valid[..., 1:])[..., None]
     pair &= both
     speed = np.linalg.norm(np.diff(c[..., :2], axis=-3), axis=-1) / dt
+    depth = np.maximum(-c[..., 2].min(-1), 0.0)  # (..., T)
     return SlipSums(slip=float(speed[pair].sum()), contact=int(pair.sum()), fast=int((speed[pair] > SLIP_SPEED).sum()),
-                    steps=int(np.broadcast_to(both, pair.shape).sum()))
+                    steps=int(np.broadcast_to(both, pair.shape).sum()), depth=float(depth[valid].sum()),
+                    states=int(valid.sum()))
 
 
 def reference_corners(sole: Soles, body_pos: np.ndarray, body_quat: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from motok.arrays import copy, is_tensor, like, xp
 from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.resets import (ClipProbabilities, check_rate, check_start_frames, given_starts, host_lengths,
                                       reference_bodies, reference_state, sample_starts)
-from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
+from motok.control.mdp.rewards import ImitationConfig, feet_error, imitation_errors, imitation_reward
 from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
@@ -65,6 +65,8 @@ class ImitationTask:
         self._goal = like(lib.qpos, np.zeros((N, self.goal_dim)))
         self._window = like(S, np.arange(K + 1))  # the reference frame reached and the K the goal looks ahead to
         self._host_lengths = host_lengths(lib)  # to check given starts on the host
+        sk = env.hum.skeleton
+        self._feet = [*sk.feet_left, *sk.feet_right]  # ankles and toes: the foot-velocity term's bodies
 
     def reference(self, clips, frames) -> Bodies:
         """Reference body states at ``frames`` of ``clips`` (clamped to each clip's last frame)."""
@@ -111,6 +113,8 @@ class ImitationTask:
         g = L.frame_index(self.clip, self.frame)
         err = imitation_errors(sim.pos, ref.pos, env.qpos[:, 7:], L.qpos[g, 7:], env.qvel[:, 6:], L.qvel[g, 6:],
                                env.end_effectors)
+        if c.reward.k_feet > 0:
+            err["feet"] = feet_error(sim.vel, ref.vel, self._feet)
         dist = body_distances(sim, ref)
         fell = tracking_failure(dist, c.termination, c.termination_distance) if c.early_termination \
             else xp(dist).zeros_like(diverged)

@@ -77,6 +77,8 @@ def preprocess(
     skeleton: Optional[str] = typer.Option(None, "--skeleton", help="smpl22, bandai21 or a YAML path "
                                            "(default: detected from the joint names)."),
     fps: Optional[float] = typer.Option(None, "--fps", help="Target frame rate, > 0 (default 20)."),
+    npy_fps: Optional[float] = typer.Option(None, "--npy-fps", help="Frame rate of .npy joint arrays, which store "
+                                            "none (default 20, HumanML3D's)."),
     legacy: bool = typer.Option(False, "--legacy", help="Reproduce the official HumanML3D quirks."),
     skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip bad inputs instead of stopping (each is "
                                   "listed, with why, in the summary and the provenance)."),
@@ -91,7 +93,7 @@ def preprocess(
     from motok.data.preprocess import preprocess as _preprocess
 
     flags = {"inputs": inputs or None, "annotations": annotations, "pattern": clips, "skeleton": skeleton,
-             "fps": fps, "jobs": jobs, "limit": limit}
+             "fps": fps, "npy_fps": npy_fps, "jobs": jobs, "limit": limit}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["legacy=true"] * legacy + ["skip_bad=true"] * skip_bad
     cfg = run(load_config, PreprocessConfig, recipe, overrides)

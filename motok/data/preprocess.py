@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -33,7 +34,7 @@ from motok.data.annotations import Annotations
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.data.dataset import Clip, write_motion
 from motok.data.root import DataRootError, resolve_data_root
-from motok.data.sources import MotionSource, count_sources, iter_sources, load_npy_positions
+from motok.data.sources import MotionSource, count_sources, iter_sources, list_sources, load_npy_positions
 from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
@@ -54,7 +55,9 @@ class PreprocessConfig:
     pattern: str = "*"  # clip-name glob; also decides which split entries must be present
     skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
     fps: float = 20.0
-    npy_fps: float = 20.0  # joint-position arrays carry no rate of their own
+    # The frame rate of .npy joint arrays, which store none (HumanML3D's new_joints are 20 fps);
+    # they are resampled from it to ``fps``. A note says which rate was assumed.
+    npy_fps: float = 20.0
     scale: float | None = None  # source units to metres; None: guess from the leg length
     legacy: bool = False
     reference_clip: str | None = None  # target bone lengths; None: first train clip by name
@@ -94,6 +97,52 @@ def check_config(cfg: PreprocessConfig) -> PreprocessConfig:
     if problems:
         raise UserError("; ".join(problems))
     return cfg
+
+
+def check_inputs(cfg: PreprocessConfig, inputs: list[Path], ann: Annotations | None, bad) -> tuple:
+    """What the inputs hold, checked before any clip is parsed: names that occur twice, split
+    entries that name no input (the ``pattern`` covers them, no ``limit``), caption files that
+    are missing or malformed (``bad`` raises, or records them under ``skip_bad``), a
+    ``reference_clip`` that is not selected. Returns the clip count for the progress bar (None:
+    unknown), ``{clip: captions}`` and the names whose captions were bad (not to be parsed).
+
+    Listing a compressed tar costs one decompression, so it is listed only when there is
+    something to check against (annotations or a reference clip)."""
+    if ann is None and cfg.reference_clip is None:
+        known = [count_sources(p, pattern=cfg.pattern + ".*") for p in inputs]  # None: a compressed tar
+        return (None if None in known else min(sum(known), cfg.limit or sum(known))), {}, set()
+    listed = [(n, o) for p in inputs for n, o in list_sources(p) if fnmatchcase(n, cfg.pattern)][:cfg.limit]
+    names = [n for n, _ in listed]
+    dup = sorted({n for n in names if names.count(n) > 1})[:5] if len(set(names)) != len(names) else []
+    if dup:
+        raise MotionFormatError(", ".join(map(str, inputs)), f"clip names occur twice: {dup}")
+    captions: dict[str, list] = {}
+    excluded: set[str] = set()
+    if ann is not None:
+        ann.split_of()  # a clip in two splits
+        if cfg.limit is None:
+            try:
+                ann.check_splits(set(names), cfg.pattern)
+            except MotionFormatError as e:
+                raise MotionFormatError(e.source, e.message + _selection_hint(names, cfg.pattern), e.line) from None
+        for name, origin in listed:
+            try:
+                captions[name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(name)]
+            except MotionFormatError as e:
+                excluded.add(name)
+                bad(_Bad(origin, e))
+    if cfg.reference_clip is not None and cfg.reference_clip not in set(names) - excluded:
+        raise UnknownNameError(f"reference_clip {cfg.reference_clip!r} is not among the {len(names)} clip(s) of the "
+                               f"inputs matching {cfg.pattern!r}")
+    return len(names), captions, excluded
+
+
+def _selection_hint(names: list[str], pattern: str) -> str:
+    """What to do when the split files name clips the inputs lack: select the inputs' clips."""
+    prefix = os.path.commonprefix(names)
+    prefix = prefix[:prefix.rfind("_") + 1] if "_" in prefix else prefix
+    glob = f" (all '{prefix}*'): select them with --clips '{prefix}*'," if prefix and pattern == "*" else ";"
+    return f"; the inputs hold {len(names)} clip(s) matching {pattern!r}{glob} or give --annotations none"
 
 
 def resolve_annotations(cfg: PreprocessConfig, inputs: list[Path], data_root) -> Path | None:
@@ -272,6 +321,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                                     f"the first: {first['input']}: {first['error']}")
         raise MotionFormatError(where, f"no clip matching {cfg.pattern!r} could be loaded")
 
+    # Everything that can be known before a clip is parsed is checked now, not after minutes of work.
+    total, captions, excluded = check_inputs(cfg, inputs, ann, bad)
+
     def selected():
         n = 0
         for path in inputs:
@@ -281,10 +333,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                 if cfg.limit is not None and n >= cfg.limit:
                     return
                 n += 1
-                yield src
+                if src.name not in excluded:
+                    yield src
 
-    known = [count_sources(p, pattern=cfg.pattern + ".*") for p in inputs]  # None: a compressed tar
-    total = None if None in known else min(sum(known), cfg.limit or sum(known))
     loaded: list[_Loaded] = []
     pool = _pool(cfg.jobs)
     try:
@@ -311,22 +362,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                 dup = sorted({n for n in names if names.count(n) > 1})[:5]
                 raise MotionFormatError(", ".join(map(str, inputs)), f"clip names occur twice: {dup}")
 
-            split_of: dict[str, str] = {}
-            captions: dict[str, list] = {}
-            if ann is not None:
-                if cfg.limit is None:
-                    ann.check_splits(set(names), cfg.pattern)
-                split_of = ann.split_of()
-                keep = []
-                for c in loaded:
-                    try:
-                        captions[c.name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(c.name)]
-                        keep.append(c)
-                    except MotionFormatError as e:
-                        bad(_Bad(c.origin, e))
-                loaded = keep
-                if not loaded:
-                    nothing_left("captions")
+            split_of = ann.split_of() if ann is not None else {}
+            if any(c.origin.lower().endswith(".npy") for c in loaded):
+                info(f".npy joint arrays carry no frame rate: read as {cfg.npy_fps:g} fps (--npy-fps)")
 
             ref = cfg.reference_clip or next((c.name for c in loaded if split_of.get(c.name) == "train"),
                                              loaded[0].name)

@@ -61,13 +61,15 @@ def _clip_key(clip: str):
 @app.command(epilog=examples(
     "motok preprocess --recipe recipes/preprocess/bandai2.yaml -o runs/bandai2.h5",
     "motok preprocess -d my_take.bvh -d more_takes/ -o mine.h5   (no captions, split 'none')",
-    "motok preprocess -d my_takes/ --annotations my_annotations/ -o mine.h5"))
+    "motok preprocess -d my_takes/ --annotations my_annotations/ -o mine.h5",
+    "motok preprocess -d HumanML3D/ -o humanml3d.h5   (a new_joint_vecs/ folder: features, texts, splits, Mean/Std)"))
 @renamed(i="--data", input="--data", pattern="--clips")
 def preprocess(
     out: Path = output_option(help="Output motion-dataset (.h5).", suffixes=H5),
     inputs: list[str] = typer.Option([], "--data", "-d", metavar="PATH",
                                      help="Mocap to read: a .bvh or .npy file, a folder or a .zip/.tar.* archive "
-                                          "(repeatable). Default: Bandai-Namco set 2 in the data root."),
+                                          "(repeatable), or one HumanML3D folder (new_joint_vecs/, read as it is). "
+                                          "Default: Bandai-Namco set 2 in the data root."),
     annotations: Optional[str] = typer.Option(None, "--annotations", metavar="DIR|none",
                                               help="HumanML3D-layout captions and splits. Default: the "
                                                    "Bandai-Namco annotations for the Bandai-Namco archives only; "
@@ -150,6 +152,25 @@ def export_bvh_cmd(
     from motok.data.export import export_clip
     written = run(export_clip, data, _clip_key(clip), out, order)
     wrote({"output": str(written), "data": str(data), "clip": clip, "order": order}, as_json)
+
+
+@export_app.command("humanml3d", epilog=examples(
+    "motok export humanml3d -d runs/bandai2.h5 -o runs/bandai2_humanml3d",
+    "motok export humanml3d -d runs/bandai2.h5 --clips 'dataset-2_walk_*' --stats all -o walks/",
+    "motok preprocess -d runs/bandai2_humanml3d -o back.h5   (and back into motok)"))
+def export_humanml3d_cmd(
+    data: Path = MotionData,
+    out: Path = output_option(help="Output folder, new or empty: new_joint_vecs/, new_joints/, texts/, split "
+                              "files, Mean.npy, Std.npy.", folder=True),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only clips whose name matches."),
+    stats: str = typer.Option("train", "--stats", metavar="train|all", help="Mean.npy/Std.npy over the train split "
+                              "(default) or over every exported clip (as HumanML3D's own script)."),
+    as_json: bool = JsonOut,
+):
+    """Export a data set as a HumanML3D folder, for T2M-GPT, MoMask and Guo et al.'s evaluator."""
+    from motok.data.humanml3d_folder import export_humanml3d
+    summary = run(export_humanml3d, data, out, pattern=clips, stats=stats)
+    report(summary, as_json, "export humanml3d")
 
 
 @app.command(epilog=examples("motok plot runs/gpt", "motok plot runs/expert --keys success,mpjpe_mm --x samples "

@@ -8,6 +8,9 @@ a reference clip's frame-0 bone lengths and extracts the HumanML3D features of e
 Nothing is written unless the whole run succeeds; with ``skip_bad`` bad clips are listed in
 the artifact's provenance instead of stopping the run.
 
+A folder in HumanML3D's layout (``new_joint_vecs/``, ``texts/``, split files, ``Mean.npy``) is
+read as it is, features and all (``motok.data.humanml3d_folder``).
+
 Captions and splits come from ``annotations``. By default (``auto``) only the default data set
 gets its own: inputs that all lie in the data root's ``bandai-namco/`` folder use
 ``bandai-namco/annotations``; any other input (your own BVH or joint arrays) gets no captions
@@ -130,7 +133,7 @@ def check_inputs(cfg: PreprocessConfig, inputs: list[Path], ann: Annotations | N
                 captions[name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(name)]
             except MotionFormatError as e:
                 excluded.add(name)
-                bad(_Bad(origin, e))
+                bad(BadInput(origin, e))
     if cfg.reference_clip is not None and cfg.reference_clip not in set(names) - excluded:
         raise UnknownNameError(f"reference_clip {cfg.reference_clip!r} is not among the {len(names)} clip(s) of the "
                                f"inputs matching {cfg.pattern!r}")
@@ -140,9 +143,10 @@ def check_inputs(cfg: PreprocessConfig, inputs: list[Path], ann: Annotations | N
 def _selection_hint(names: list[str], pattern: str) -> str:
     """What to do when the split files name clips the inputs lack: select the inputs' clips."""
     prefix = os.path.commonprefix(names)
-    prefix = prefix[:prefix.rfind("_") + 1] if "_" in prefix else prefix
-    glob = f" (all '{prefix}*'): select them with --clips '{prefix}*'," if prefix and pattern == "*" else ";"
-    return f"; the inputs hold {len(names)} clip(s) matching {pattern!r}{glob} or give --annotations none"
+    glob = (prefix[:prefix.rfind("_") + 1] if "_" in prefix else prefix) + "*"
+    how = f" (all {glob!r}): select them with --clips {glob!r}" if glob not in ("*", pattern) else \
+        ": select them with --clips"
+    return f"; the inputs hold {len(names)} clip(s) matching {pattern!r}{how}, or give --annotations none"
 
 
 def resolve_annotations(cfg: PreprocessConfig, inputs: list[Path], data_root) -> Path | None:
@@ -236,7 +240,7 @@ def _load(src: MotionSource, skeleton: Skeleton | None, cfg: PreprocessConfig) -
     return _Loaded(src.name, src.origin, float(src_fps), int(n_src), pos, labels_from_name(src.name)), sk
 
 
-class _Bad:
+class BadInput:
     """A clip that failed: where it came from and why, each said once."""
 
     def __init__(self, origin: str, error: Exception):
@@ -257,7 +261,7 @@ def _load_job(args):
     try:
         return _load(src, skeleton, cfg)
     except (MotionFormatError, SkeletonError, ValueError) as e:
-        return _Bad(src.origin, e)
+        return BadInput(src.origin, e)
 
 
 def _feature_job(args):
@@ -265,7 +269,7 @@ def _feature_job(args):
     try:
         return extract_features(positions, sk, target_offsets=offsets, fps=cfg.fps, legacy=cfg.legacy)
     except (ValueError, FloatingPointError) as e:
-        return _Bad(origin, MotionFormatError(origin, f"feature extraction failed: {e}"))
+        return BadInput(origin, MotionFormatError(origin, f"feature extraction failed: {e}"))
 
 
 def _pool(jobs: int):
@@ -303,12 +307,18 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
     for p in inputs:
         if not p.exists():
             raise MissingFileError(f"input {p} does not exist")
+    from motok.data.humanml3d_folder import FEATURES, import_humanml3d, is_humanml3d_folder
+    folders = [p for p in inputs if is_humanml3d_folder(p)]
+    if folders:  # features already made: read, not recomputed
+        if len(inputs) > 1:
+            raise UserError(f"{folders[0]} is a HumanML3D folder ({FEATURES}/): read it on its own, as the only -d")
+        return import_humanml3d(cfg, folders[0], out, data_root, command)
     ann_root = resolve_annotations(cfg, inputs, data_root)
     ann = Annotations.load(ann_root) if ann_root is not None else None
     skeleton = load_skeleton(cfg.skeleton) if cfg.skeleton else None
     skipped: list[dict] = []
 
-    def bad(b: _Bad):
+    def bad(b: BadInput):
         if not cfg.skip_bad:
             raise b.error
         skipped.append({"input": b.origin, "error": b.reason()})
@@ -343,14 +353,14 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
             task = progress.add_task("parse", total=total)
             gen = ((s, skeleton, cfg) for s in selected())
             for res in _map(pool, _load_job, gen, progress, task):
-                if isinstance(res, _Bad):
+                if isinstance(res, BadInput):
                     bad(res)
                     continue
                 clip, sk = res
                 if skeleton is None:
                     skeleton = sk
                 elif sk.name != skeleton.name:
-                    bad(_Bad(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
+                    bad(BadInput(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
                                                         f"{skeleton.name!r} of earlier clips")))
                     continue
                 loaded.append(clip)
@@ -377,7 +387,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
             jobs = ((c.origin, c.positions, skeleton, offsets, cfg) for c in loaded)
             clips: list[Clip] = []
             for c, res in zip(loaded, _map(pool, _feature_job, jobs, progress, task2)):
-                if isinstance(res, _Bad):
+                if isinstance(res, BadInput):
                     bad(res)
                     continue
                 clips.append(Clip(c.name, res.features, res.joints, res.local_quats, res.root_translation,

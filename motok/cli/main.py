@@ -176,7 +176,8 @@ def export_humanml3d_cmd(
 @app.command(epilog=examples("motok plot runs/gpt", "motok plot runs/expert --keys success,mpjpe_mm --x samples "
                              "--x2 wall_s --smooth 0.9 -o expert.png",
                              "motok plot runs/prior_hybrid runs/prior_continuous --keys eval_success,action_loss "
-                             "--x samples --log action_loss -o priors.png"))
+                             "--x samples --log action_loss -o priors.png",
+                             "motok plot runs/gpt --tensorboard runs/tb   (then: tensorboard --logdir runs/tb)"))
 def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its metrics.jsonl; several are drawn "
                                                           "on the same subplots.", callback=existing),
          out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png; required for several runs).",
@@ -191,16 +192,25 @@ def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its met
                                            "(losses, errors)."),
          missing_ok: bool = typer.Option(False, "--missing-ok", help="Leave out, with a warning, --keys that no "
                                          "run has logged yet (at least one must be there)."),
+         tensorboard: Optional[Path] = output_option("--tensorboard", help="Also write the metrics as TensorBoard "
+                                                     "event files into DIR/RUN_NAME/ (pip install "
+                                                     "'motok\\[tensorboard]').", folder=True, required=False),
          as_json: bool = JsonOut):
-    """Plot training curves from metrics JSONL to PNG; several runs on the same subplots to compare them."""
+    """Plot training curves from metrics JSONL to PNG: one labelled panel per quantity, its training,
+    validation and evaluation values overlaid; several runs on the same subplots to compare them."""
     from motok.render.plot import plot_run
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
     logy = [k.strip() for k in log.split(",") if k.strip()] if log else False
     dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2, missing_ok=missing_ok,
               logy=logy)
     src = [str(m) for m in metrics]
-    wrote({"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2},
-          as_json)
+    summary = {"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2}
+    if tensorboard is not None:
+        from motok.render.plot import run_sources
+        from motok.render.tensorboard import write_events
+        events = run(write_events, run(run_sources, list(metrics), label or None), tensorboard, x)
+        summary["tensorboard"] = [str(p) for p in events]
+    wrote(summary, as_json, dst, *summary.get("tensorboard", []))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -199,12 +199,14 @@ def test_golden_joints_out_of_motok(golden_dir, golden_features, golden_joints, 
         assert np.abs(feats[:89, sl] - golden_features[:89, sl]).max() < 1e-4, block
     joints = np.load(tmp_path / "out/new_joints/new_joints_012314.npy")
     assert np.abs(joints - golden_joints[:len(joints)]).max() < 1e-4
-    assert (tmp_path / "out/all.txt").read_text() == "new_joints_012314\n" and (tmp_path / "out/train.txt").read_text() == ""
+    assert (tmp_path / "out/all.txt").read_text() == "new_joints_012314\n"
+    assert (tmp_path / "out/train.txt").read_text() == ""
 
 
 def test_captions_without_tokens_and_bad_outputs(small_dataset, tmp_path):
     assert fallback_tokens("A person walks, then turns.") == "a/OTHER person/OTHER walks/OTHER then/OTHER turns/OTHER"
-    assert caption_line("a person waves.", "", 1.0, 2.5, "x") == "a person waves.#a/OTHER person/OTHER waves/OTHER#1.0#2.5"
+    line = caption_line("a person waves.", "", 1.0, 2.5, "x")
+    assert line == "a person waves.#a/OTHER person/OTHER waves/OTHER#1.0#2.5"
     with pytest.raises(UserError, match="'#'"):
         caption_line("a # b", "", 0, 0, "x")
     (tmp_path / "full").mkdir()

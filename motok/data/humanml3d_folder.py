@@ -32,7 +32,7 @@ from motok.atomic import atomic_folder, write_json
 from motok.data.annotations import SPLITS, Annotations
 from motok.data.bvh import MotionFormatError
 from motok.data.dataset import NO_SPLIT, Clip, MotionFile, select_clips, write_motion
-from motok.data.preprocess import BadInput, check_inputs, labels_from_name, resolve_input
+from motok.data.inputs import BadInput, check_inputs, labels_from_name, resolve_input
 from motok.errors import UserError
 from motok.features.humanml3d import mean_std, recover_from_ric, skeleton_offsets
 from motok.features.kinematics import inverse_kinematics
@@ -211,7 +211,8 @@ def import_humanml3d(cfg, folder: Path, out, data_root=None, command: str | None
     fps = float(side["fps"]) if side else float(cfg.npy_fps)
     if abs(fps - cfg.fps) > 1e-6:
         said = f"its {SIDECAR} says" if side else "--npy-fps says (HumanML3D's is 20)"
-        raise UserError(f"{folder}: the features are at {fps:g} fps ({said}) and cannot be resampled; give --fps {fps:g}")
+        raise UserError(f"{folder}: the features are at {fps:g} fps ({said}) and cannot be resampled; "
+                        f"give --fps {fps:g}")
     a = cfg.annotations
     if a is None or str(a).lower() == "none":
         ann_root = None
@@ -248,8 +249,8 @@ def import_humanml3d(cfg, folder: Path, out, data_root=None, command: str | None
             except MotionFormatError as e:
                 bad(BadInput(str(f), e))
     if not clips:
-        raise MotionFormatError(str(folder / FEATURES), f"no clip matching {cfg.pattern!r} could be read"
-                                + (f"; the first bad one: {skipped[0]['input']}: {skipped[0]['error']}" if skipped else ""))
+        first = f"; the first bad one: {skipped[0]['input']}: {skipped[0]['error']}" if skipped else ""
+        raise MotionFormatError(str(folder / FEATURES), f"no clip matching {cfg.pattern!r} could be read{first}")
     if side is not None and cfg.reference_clip is None:
         offsets = np.asarray(side["offsets"], dtype=np.float64)
     else:

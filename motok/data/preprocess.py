@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -36,17 +34,13 @@ from motok.atomic import check_writable
 from motok.data.annotations import Annotations
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.data.dataset import Clip, write_motion
-from motok.data.root import DataRootError, resolve_data_root
-from motok.data.sources import MotionSource, count_sources, iter_sources, list_sources, load_npy_positions
+from motok.data.inputs import BadInput, check_inputs, labels_from_name, resolve_annotations, resolve_input
+from motok.data.sources import MotionSource, iter_sources, load_npy_positions
 from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
 from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
-
-
-BANDAI_FOLDER = "bandai-namco"  # under the data root
-BANDAI_ANNOTATIONS = "bandai-namco/annotations"
 
 
 @dataclass
@@ -102,91 +96,6 @@ def check_config(cfg: PreprocessConfig) -> PreprocessConfig:
     return cfg
 
 
-def check_inputs(cfg: PreprocessConfig, inputs: list[Path], ann: Annotations | None, bad) -> tuple:
-    """What the inputs hold, checked before any clip is parsed: names that occur twice, split
-    entries that name no input (the ``pattern`` covers them, no ``limit``), caption files that
-    are missing or malformed (``bad`` raises, or records them under ``skip_bad``), a
-    ``reference_clip`` that is not selected. Returns the clip count for the progress bar (None:
-    unknown), ``{clip: captions}`` and the names whose captions were bad (not to be parsed).
-
-    Listing a compressed tar costs one decompression, so it is listed only when there is
-    something to check against (annotations or a reference clip)."""
-    if ann is None and cfg.reference_clip is None:
-        known = [count_sources(p, pattern=cfg.pattern + ".*") for p in inputs]  # None: a compressed tar
-        return (None if None in known else min(sum(known), cfg.limit or sum(known))), {}, set()
-    listed = [(n, o) for p in inputs for n, o in list_sources(p) if fnmatchcase(n, cfg.pattern)][:cfg.limit]
-    names = [n for n, _ in listed]
-    dup = sorted({n for n in names if names.count(n) > 1})[:5] if len(set(names)) != len(names) else []
-    if dup:
-        raise MotionFormatError(", ".join(map(str, inputs)), f"clip names occur twice: {dup}")
-    captions: dict[str, list] = {}
-    excluded: set[str] = set()
-    if ann is not None:
-        ann.split_of()  # a clip in two splits
-        if cfg.limit is None:
-            try:
-                ann.check_splits(set(names), cfg.pattern)
-            except MotionFormatError as e:
-                raise MotionFormatError(e.source, e.message + _selection_hint(names, cfg.pattern), e.line) from None
-        for name, origin in listed:
-            try:
-                captions[name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(name)]
-            except MotionFormatError as e:
-                excluded.add(name)
-                bad(BadInput(origin, e))
-    if cfg.reference_clip is not None and cfg.reference_clip not in set(names) - excluded:
-        raise UnknownNameError(f"reference_clip {cfg.reference_clip!r} is not among the {len(names)} clip(s) of the "
-                               f"inputs matching {cfg.pattern!r}")
-    return len(names), captions, excluded
-
-
-def _selection_hint(names: list[str], pattern: str) -> str:
-    """What to do when the split files name clips the inputs lack: select the inputs' clips."""
-    prefix = os.path.commonprefix(names)
-    glob = (prefix[:prefix.rfind("_") + 1] if "_" in prefix else prefix) + "*"
-    how = f" (all {glob!r}): select them with --clips {glob!r}" if glob not in ("*", pattern) else \
-        ": select them with --clips"
-    return f"; the inputs hold {len(names)} clip(s) matching {pattern!r}{how}, or give --annotations none"
-
-
-def resolve_annotations(cfg: PreprocessConfig, inputs: list[Path], data_root) -> Path | None:
-    """The annotations folder to use, or None (see the module docstring for ``auto``)."""
-    a = cfg.annotations
-    if a is None or str(a).lower() == "none":
-        return None
-    if str(a).lower() != "auto":
-        return resolve_input(str(a), data_root)
-    try:
-        root = resolve_data_root(data_root)
-    except DataRootError:
-        return None  # no data root: the inputs cannot be the default data set
-    bandai = (root / BANDAI_FOLDER).resolve()
-    if not all(p.resolve().is_relative_to(bandai) for p in inputs):
-        return None
-    ann = root / BANDAI_ANNOTATIONS
-    if not ann.is_dir():
-        raise MissingFileError(f"{ann}: the Bandai-Namco annotations are missing (see docs/data.md), or pass "
-                               f"--annotations none for no captions")
-    return ann
-
-
-def resolve_input(p: str, data_root: Path | None) -> Path:
-    path = Path(p).expanduser()
-    if path.exists() or path.is_absolute():
-        return path
-    root = resolve_data_root(data_root)
-    return root / p
-
-
-BANDAI_NAME = re.compile(r"^dataset-(\d+)_(.+?)_([a-z-]+)_(\d+)$")
-
-
-def labels_from_name(name: str) -> dict:
-    """Bandai-Namco clip names encode content and style: ``dataset-N_{content}_{style}_{id}``."""
-    m = BANDAI_NAME.match(name)
-    return {"set": int(m.group(1)), "content": m.group(2), "style": m.group(3)} if m else {}
-
-
 def snap_fps(fps: float) -> float:
     """BVH frame times are printed with few digits (0.0333333 s is 30.00003 fps); a rate within
     1e-4 relative of a whole number is that number, or 30 -> 20 fps would lose a frame."""
@@ -238,22 +147,6 @@ def _load(src: MotionSource, skeleton: Skeleton | None, cfg: PreprocessConfig) -
     scale = cfg.scale if cfg.scale is not None else guess_scale(pos, sk)
     pos = pos * scale
     return _Loaded(src.name, src.origin, float(src_fps), int(n_src), pos, labels_from_name(src.name)), sk
-
-
-class BadInput:
-    """A clip that failed: where it came from and why, each said once."""
-
-    def __init__(self, origin: str, error: Exception):
-        self.origin, self.error = origin, error
-
-    def reason(self) -> str:
-        if isinstance(self.error, MotionFormatError) and self.error.source == self.origin:
-            return self.error.message if self.error.line is None else f"line {self.error.line}: {self.error.message}"
-        msg = str(self.error)
-        for sep in (": ", ", "):
-            if msg.startswith(self.origin + sep):
-                return msg[len(self.origin) + len(sep):]
-        return msg
 
 
 def _load_job(args):

@@ -22,6 +22,7 @@ import math
 import numbers
 import os
 import re
+import shutil
 import socket
 import tempfile
 import uuid
@@ -116,6 +117,29 @@ def atomic_paths(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     finally:
         for tmp in tmps:
             tmp.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """:func:`atomic_path` for a folder of many files (a data set in another tool's layout): yield
+    a temporary sibling folder and rename it to ``path`` when the block succeeds. ``path`` must
+    not exist or be an empty folder, so nothing of an older export mixes with the new one; a
+    failure (or a folder left by a killed writer of the same target) is removed whole."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise OutputError(f"output {path} exists and is not an empty folder; give a new folder")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in stale_temp_files(path):
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = path.with_name(temp_name(path))
+    tmp.mkdir(mode=0o777 & ~_UMASK)
+    try:
+        yield tmp
+        if path.exists():
+            path.rmdir()  # empty, checked above; a folder cannot be renamed over a folder
+        os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def finite_or_null(obj):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 import tarfile
 from pathlib import Path
 
@@ -77,6 +78,15 @@ def _slice_copy(src: Path, dst: Path, n: int) -> list[str]:
     return names
 
 
+def _never_parse(monkeypatch):
+    """Make parsing a clip fail the test: checks that come before any work must not reach it."""
+    import motok.data.preprocess as pre
+
+    def parse(*a, **k):
+        raise AssertionError("a clip was parsed before the inputs were checked")
+    monkeypatch.setattr(pre, "_load", parse)
+
+
 def test_bad_clip_stops_or_is_skipped(bandai_slice, bandai_dir, tmp_path):
     d = tmp_path / "in"
     names = _slice_copy(bandai_slice, d, 3)
@@ -105,9 +115,11 @@ def test_split_naming_missing_clip(bandai_slice, bandai_dir, tmp_path):
         preprocess(cfg, tmp_path / "x.h5")
 
 
-def test_clip_without_caption_file(bandai_slice, tmp_path):
+def test_clip_without_caption_file(bandai_slice, tmp_path, monkeypatch):
+    """Caption files and the reference clip are checked before any clip is parsed."""
     d = tmp_path / "in"
     names = _slice_copy(bandai_slice, d, 2)
+    _never_parse(monkeypatch)
     ann = tmp_path / "ann"
     (ann / "texts").mkdir(parents=True)
     (ann / "texts" / f"{names[0]}.txt").write_text("a person walks.#a/DET person/NOUN walk/VERB#0.0#0.0\n")
@@ -118,6 +130,8 @@ def test_clip_without_caption_file(bandai_slice, tmp_path):
     (ann / "texts" / f"{names[1]}.txt").write_text("a person walks.#tokens#1.0\n")
     with pytest.raises(MotionFormatError, match=r"line 1.*4 fields"):
         preprocess(cfg, tmp_path / "x.h5")
+    with pytest.raises(KeyError, match="reference_clip 'nope' is not among the 2 clip"):
+        preprocess(PreprocessConfig(inputs=[str(d)], annotations=None, reference_clip="nope"), tmp_path / "x.h5")
 
 
 def test_unknown_skeleton_and_empty_archive(bandai_slice, tmp_path):
@@ -158,3 +172,48 @@ def test_npy_joints_through_the_whole_pipeline_match_golden_features(golden_dir,
     for block, sl in feature_slices(22).items():
         err = np.abs(feats[:89, sl] - golden_features[:89, sl]).max()
         assert err < 1e-4, f"{block}: {err}"
+
+
+def test_split_files_are_checked_before_any_clip_is_parsed(bandai_slice, bandai_dir, tmp_path, monkeypatch):
+    """The default annotations cover both sets: a set-2-only input without --clips stops at once,
+    on one line naming the split file, the line and the clip, with the --clips that fits; a
+    compressed archive is listed, not parsed, to know that."""
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+
+    tar = tmp_path / "walks.tar.xz"
+    with tarfile.open(tar, "w:xz") as t:
+        for p in sorted(bandai_slice.glob("*.bvh"))[:3]:
+            t.add(p, arcname=f"walks/{p.name}")
+    _never_parse(monkeypatch)
+    for inp in (bandai_slice, tar):
+        r = CliRunner().invoke(app, ["preprocess", "-d", str(inp), "--annotations", str(bandai_dir / "annotations"),
+                                     "-o", str(tmp_path / "x.h5")])
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+        assert re.search(r"annotations/(train|val|test)\.txt, line \d+: names clip 'dataset-1_\w+', which is not "
+                         r"among the inputs", r.output), r.output
+        assert "--clips 'dataset-2_walk_normal_*'" in r.output
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_npy_fps_is_the_rate_of_joint_arrays_and_is_said(golden_dir, tmp_path):
+    """A (T, J, 3) array stores no rate: --npy-fps gives it (default 20, HumanML3D's) and a note
+    says which was assumed; at 40 fps the 170 frames are 4.2 s, resampled to 85 at 20 fps."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+
+    src = golden_dir / "new_joints_012314.npy"
+    r = CliRunner().invoke(app, ["preprocess", "-d", str(src), "--npy-fps", "40", "--json", "-o",
+                                 str(tmp_path / "g.h5")])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    assert summary["source_frames"] == 170 and summary["frames"] == 85 - 1
+    assert "read as 40 fps (--npy-fps)" in r.stderr
+    with MotionFile(tmp_path / "g.h5") as mf:
+        assert mf.h5["clips/source_fps"][0] == 40.0 and mf.provenance.config["npy_fps"] == 40.0
+    r = CliRunner().invoke(app, ["preprocess", "-d", str(src), "--npy-fps", "0", "-o", str(tmp_path / "h.h5")])
+    assert r.exit_code == 2 and "npy_fps 0.0 must be a positive number of frames per second" in r.output

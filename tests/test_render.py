@@ -281,7 +281,7 @@ def test_several_runs_share_the_subplots(tmp_path):
     # missing_ok: a key no run has logged yet is left out with a warning; one key must remain
     with pytest.warns(UserWarning, match="no metric 'r_im'"):
         fig = _figure({"a": a, "b": b}, ["eval_success", "r_im"], "samples", missing_ok=True)
-    assert [ax.get_title(loc="left") for ax in fig.axes if ax.get_lines()] == ["eval_success"]
+    assert [ax.get_title(loc="left") for ax in fig.axes if ax.get_lines()] == ["Success rate"]
     with pytest.raises(ValueError, match="no metric 'r_im'"):
         _figure({"a": a, "b": b}, ["r_im"], "samples", missing_ok=True)
     runs = []

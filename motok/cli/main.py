@@ -61,13 +61,15 @@ def _clip_key(clip: str):
 @app.command(epilog=examples(
     "motok preprocess --recipe recipes/preprocess/bandai2.yaml -o runs/bandai2.h5",
     "motok preprocess -d my_take.bvh -d more_takes/ -o mine.h5   (no captions, split 'none')",
-    "motok preprocess -d my_takes/ --annotations my_annotations/ -o mine.h5"))
+    "motok preprocess -d my_takes/ --annotations my_annotations/ -o mine.h5",
+    "motok preprocess -d HumanML3D/ -o humanml3d.h5   (a new_joint_vecs/ folder: features, texts, splits, Mean/Std)"))
 @renamed(i="--data", input="--data", pattern="--clips")
 def preprocess(
     out: Path = output_option(help="Output motion-dataset (.h5).", suffixes=H5),
     inputs: list[str] = typer.Option([], "--data", "-d", metavar="PATH",
                                      help="Mocap to read: a .bvh or .npy file, a folder or a .zip/.tar.* archive "
-                                          "(repeatable). Default: Bandai-Namco set 2 in the data root."),
+                                          "(repeatable), or one HumanML3D folder (new_joint_vecs/, read as it is). "
+                                          "Default: Bandai-Namco set 2 in the data root."),
     annotations: Optional[str] = typer.Option(None, "--annotations", metavar="DIR|none",
                                               help="HumanML3D-layout captions and splits. Default: the "
                                                    "Bandai-Namco annotations for the Bandai-Namco archives only; "
@@ -77,6 +79,8 @@ def preprocess(
     skeleton: Optional[str] = typer.Option(None, "--skeleton", help="smpl22, bandai21 or a YAML path "
                                            "(default: detected from the joint names)."),
     fps: Optional[float] = typer.Option(None, "--fps", help="Target frame rate, > 0 (default 20)."),
+    npy_fps: Optional[float] = typer.Option(None, "--npy-fps", help="Frame rate of .npy joint arrays, which store "
+                                            "none (default 20, HumanML3D's)."),
     legacy: bool = typer.Option(False, "--legacy", help="Reproduce the official HumanML3D quirks."),
     skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip bad inputs instead of stopping (each is "
                                   "listed, with why, in the summary and the provenance)."),
@@ -91,7 +95,7 @@ def preprocess(
     from motok.data.preprocess import preprocess as _preprocess
 
     flags = {"inputs": inputs or None, "annotations": annotations, "pattern": clips, "skeleton": skeleton,
-             "fps": fps, "jobs": jobs, "limit": limit}
+             "fps": fps, "npy_fps": npy_fps, "jobs": jobs, "limit": limit}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["legacy=true"] * legacy + ["skip_bad=true"] * skip_bad
     cfg = run(load_config, PreprocessConfig, recipe, overrides)
@@ -150,10 +154,30 @@ def export_bvh_cmd(
     wrote({"output": str(written), "data": str(data), "clip": clip, "order": order}, as_json)
 
 
+@export_app.command("humanml3d", epilog=examples(
+    "motok export humanml3d -d runs/bandai2.h5 -o runs/bandai2_humanml3d",
+    "motok export humanml3d -d runs/bandai2.h5 --clips 'dataset-2_walk_*' --stats all -o walks/",
+    "motok preprocess -d runs/bandai2_humanml3d -o back.h5   (and back into motok)"))
+def export_humanml3d_cmd(
+    data: Path = MotionData,
+    out: Path = output_option(help="Output folder, new or empty: new_joint_vecs/, new_joints/, texts/, split "
+                              "files, Mean.npy, Std.npy.", folder=True),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only clips whose name matches."),
+    stats: str = typer.Option("train", "--stats", metavar="train|all", help="Mean.npy/Std.npy over the train split "
+                              "(default) or over every exported clip (as HumanML3D's own script)."),
+    as_json: bool = JsonOut,
+):
+    """Export a data set as a HumanML3D folder, for T2M-GPT, MoMask and Guo et al.'s evaluator."""
+    from motok.data.humanml3d_folder import export_humanml3d
+    summary = run(export_humanml3d, data, out, pattern=clips, stats=stats)
+    report(summary, as_json, "export humanml3d")
+
+
 @app.command(epilog=examples("motok plot runs/gpt", "motok plot runs/expert --keys success,mpjpe_mm --x samples "
                              "--x2 wall_s --smooth 0.9 -o expert.png",
                              "motok plot runs/prior_hybrid runs/prior_continuous --keys eval_success,action_loss "
-                             "--x samples --log action_loss -o priors.png"))
+                             "--x samples --log action_loss -o priors.png",
+                             "motok plot runs/gpt --tensorboard runs/tb   (then: tensorboard --logdir runs/tb)"))
 def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its metrics.jsonl; several are drawn "
                                                           "on the same subplots.", callback=existing),
          out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png; required for several runs).",
@@ -168,16 +192,25 @@ def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its met
                                            "(losses, errors)."),
          missing_ok: bool = typer.Option(False, "--missing-ok", help="Leave out, with a warning, --keys that no "
                                          "run has logged yet (at least one must be there)."),
+         tensorboard: Optional[Path] = output_option("--tensorboard", help="Also write the metrics as TensorBoard "
+                                                     "event files into DIR/RUN_NAME/ (pip install "
+                                                     "'motok\\[tensorboard]').", folder=True, required=False),
          as_json: bool = JsonOut):
-    """Plot training curves from metrics JSONL to PNG; several runs on the same subplots to compare them."""
+    """Plot training curves from metrics JSONL to PNG: one labelled panel per quantity, its training,
+    validation and evaluation values overlaid; several runs on the same subplots to compare them."""
     from motok.render.plot import plot_run
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
     logy = [k.strip() for k in log.split(",") if k.strip()] if log else False
     dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2, missing_ok=missing_ok,
               logy=logy)
     src = [str(m) for m in metrics]
-    wrote({"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2},
-          as_json)
+    summary = {"output": str(dst), "metrics": src[0] if len(src) == 1 else src, "keys": names, "x": x, "x2": x2}
+    if tensorboard is not None:
+        from motok.render.plot import run_sources
+        from motok.render.tensorboard import write_events
+        events = run(write_events, run(run_sources, list(metrics), label or None), tensorboard, x)
+        summary["tensorboard"] = [str(p) for p in events]
+    wrote(summary, as_json, dst, *summary.get("tensorboard", []))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -148,13 +148,17 @@ class MotionFile:
         a, b = self.frame_offsets[i], self.frame_offsets[i + 1]
         return self.h5["frames"][key][a:b]
 
-    def captions(self, clip) -> list[tuple[str, float, float]]:
+    def captions(self, clip, tokens: bool = False) -> list[tuple]:
+        """``[(text, start, end)]`` of a clip; with ``tokens``, ``[(text, tokens, start, end)]``
+        (the ``word/POS`` tokens of the annotations, "" where there were none)."""
         i = self.index(clip)
         if self._captions is None:  # read once: per-call reads made whole-dataset loops quadratic
             g = self.h5["captions"]
-            self._captions = (g["clip"][()], read_strings(g["text"]), g["start"][()], g["end"][()])
-        owner, texts, start, end = self._captions
-        return [(texts[j], float(start[j]), float(end[j])) for j in np.flatnonzero(owner == i)]
+            self._captions = (g["clip"][()], read_strings(g["text"]), read_strings(g["tokens"]), g["start"][()],
+                              g["end"][()])
+        owner, texts, toks, start, end = self._captions
+        return [(texts[j], *((toks[j],) if tokens else ()), float(start[j]), float(end[j]))
+                for j in np.flatnonzero(owner == i)]
 
     def clip(self, clip) -> Clip:
         i = self.index(clip)
@@ -165,7 +169,7 @@ class MotionFile:
             local_quats=self.frames("local_quats", i), root_translation=self.frames("root_translation", i),
             source=_str(c["source"][i]), source_fps=float(c["source_fps"][i]), split=self.splits[i],
             labels=json.loads(c["labels"][i]),
-            captions=[(t, "", s, e) for t, s, e in self.captions(i)],
+            captions=self.captions(i, tokens=True),
         )
 
     def split_indices(self, split: str) -> list[int]:

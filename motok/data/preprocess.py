@@ -8,6 +8,9 @@ a reference clip's frame-0 bone lengths and extracts the HumanML3D features of e
 Nothing is written unless the whole run succeeds; with ``skip_bad`` bad clips are listed in
 the artifact's provenance instead of stopping the run.
 
+A folder in HumanML3D's layout (``new_joint_vecs/``, ``texts/``, split files, ``Mean.npy``) is
+read as it is, features and all (``motok.data.humanml3d_folder``).
+
 Captions and splits come from ``annotations``. By default (``auto``) only the default data set
 gets its own: inputs that all lie in the data root's ``bandai-namco/`` folder use
 ``bandai-namco/annotations``; any other input (your own BVH or joint arrays) gets no captions
@@ -18,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -32,17 +34,13 @@ from motok.atomic import check_writable
 from motok.data.annotations import Annotations
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.data.dataset import Clip, write_motion
-from motok.data.root import DataRootError, resolve_data_root
-from motok.data.sources import MotionSource, count_sources, iter_sources, load_npy_positions
+from motok.data.inputs import BadInput, check_inputs, labels_from_name, resolve_annotations, resolve_input
+from motok.data.sources import MotionSource, iter_sources, load_npy_positions
 from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
 from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
-
-
-BANDAI_FOLDER = "bandai-namco"  # under the data root
-BANDAI_ANNOTATIONS = "bandai-namco/annotations"
 
 
 @dataclass
@@ -54,7 +52,9 @@ class PreprocessConfig:
     pattern: str = "*"  # clip-name glob; also decides which split entries must be present
     skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
     fps: float = 20.0
-    npy_fps: float = 20.0  # joint-position arrays carry no rate of their own
+    # The frame rate of .npy joint arrays, which store none (HumanML3D's new_joints are 20 fps);
+    # they are resampled from it to ``fps``. A note says which rate was assumed.
+    npy_fps: float = 20.0
     scale: float | None = None  # source units to metres; None: guess from the leg length
     legacy: bool = False
     reference_clip: str | None = None  # target bone lengths; None: first train clip by name
@@ -94,44 +94,6 @@ def check_config(cfg: PreprocessConfig) -> PreprocessConfig:
     if problems:
         raise UserError("; ".join(problems))
     return cfg
-
-
-def resolve_annotations(cfg: PreprocessConfig, inputs: list[Path], data_root) -> Path | None:
-    """The annotations folder to use, or None (see the module docstring for ``auto``)."""
-    a = cfg.annotations
-    if a is None or str(a).lower() == "none":
-        return None
-    if str(a).lower() != "auto":
-        return resolve_input(str(a), data_root)
-    try:
-        root = resolve_data_root(data_root)
-    except DataRootError:
-        return None  # no data root: the inputs cannot be the default data set
-    bandai = (root / BANDAI_FOLDER).resolve()
-    if not all(p.resolve().is_relative_to(bandai) for p in inputs):
-        return None
-    ann = root / BANDAI_ANNOTATIONS
-    if not ann.is_dir():
-        raise MissingFileError(f"{ann}: the Bandai-Namco annotations are missing (see docs/data.md), or pass "
-                               f"--annotations none for no captions")
-    return ann
-
-
-def resolve_input(p: str, data_root: Path | None) -> Path:
-    path = Path(p).expanduser()
-    if path.exists() or path.is_absolute():
-        return path
-    root = resolve_data_root(data_root)
-    return root / p
-
-
-BANDAI_NAME = re.compile(r"^dataset-(\d+)_(.+?)_([a-z-]+)_(\d+)$")
-
-
-def labels_from_name(name: str) -> dict:
-    """Bandai-Namco clip names encode content and style: ``dataset-N_{content}_{style}_{id}``."""
-    m = BANDAI_NAME.match(name)
-    return {"set": int(m.group(1)), "content": m.group(2), "style": m.group(3)} if m else {}
 
 
 def snap_fps(fps: float) -> float:
@@ -187,28 +149,12 @@ def _load(src: MotionSource, skeleton: Skeleton | None, cfg: PreprocessConfig) -
     return _Loaded(src.name, src.origin, float(src_fps), int(n_src), pos, labels_from_name(src.name)), sk
 
 
-class _Bad:
-    """A clip that failed: where it came from and why, each said once."""
-
-    def __init__(self, origin: str, error: Exception):
-        self.origin, self.error = origin, error
-
-    def reason(self) -> str:
-        if isinstance(self.error, MotionFormatError) and self.error.source == self.origin:
-            return self.error.message if self.error.line is None else f"line {self.error.line}: {self.error.message}"
-        msg = str(self.error)
-        for sep in (": ", ", "):
-            if msg.startswith(self.origin + sep):
-                return msg[len(self.origin) + len(sep):]
-        return msg
-
-
 def _load_job(args):
     src, skeleton, cfg = args
     try:
         return _load(src, skeleton, cfg)
     except (MotionFormatError, SkeletonError, ValueError) as e:
-        return _Bad(src.origin, e)
+        return BadInput(src.origin, e)
 
 
 def _feature_job(args):
@@ -216,7 +162,7 @@ def _feature_job(args):
     try:
         return extract_features(positions, sk, target_offsets=offsets, fps=cfg.fps, legacy=cfg.legacy)
     except (ValueError, FloatingPointError) as e:
-        return _Bad(origin, MotionFormatError(origin, f"feature extraction failed: {e}"))
+        return BadInput(origin, MotionFormatError(origin, f"feature extraction failed: {e}"))
 
 
 def _pool(jobs: int):
@@ -254,12 +200,18 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
     for p in inputs:
         if not p.exists():
             raise MissingFileError(f"input {p} does not exist")
+    from motok.data.humanml3d_folder import FEATURES, import_humanml3d, is_humanml3d_folder
+    folders = [p for p in inputs if is_humanml3d_folder(p)]
+    if folders:  # features already made: read, not recomputed
+        if len(inputs) > 1:
+            raise UserError(f"{folders[0]} is a HumanML3D folder ({FEATURES}/): read it on its own, as the only -d")
+        return import_humanml3d(cfg, folders[0], out, data_root, command)
     ann_root = resolve_annotations(cfg, inputs, data_root)
     ann = Annotations.load(ann_root) if ann_root is not None else None
     skeleton = load_skeleton(cfg.skeleton) if cfg.skeleton else None
     skipped: list[dict] = []
 
-    def bad(b: _Bad):
+    def bad(b: BadInput):
         if not cfg.skip_bad:
             raise b.error
         skipped.append({"input": b.origin, "error": b.reason()})
@@ -272,6 +224,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                                     f"the first: {first['input']}: {first['error']}")
         raise MotionFormatError(where, f"no clip matching {cfg.pattern!r} could be loaded")
 
+    # Everything that can be known before a clip is parsed is checked now, not after minutes of work.
+    total, captions, excluded = check_inputs(cfg, inputs, ann, bad)
+
     def selected():
         n = 0
         for path in inputs:
@@ -281,10 +236,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                 if cfg.limit is not None and n >= cfg.limit:
                     return
                 n += 1
-                yield src
+                if src.name not in excluded:
+                    yield src
 
-    known = [count_sources(p, pattern=cfg.pattern + ".*") for p in inputs]  # None: a compressed tar
-    total = None if None in known else min(sum(known), cfg.limit or sum(known))
     loaded: list[_Loaded] = []
     pool = _pool(cfg.jobs)
     try:
@@ -292,14 +246,14 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
             task = progress.add_task("parse", total=total)
             gen = ((s, skeleton, cfg) for s in selected())
             for res in _map(pool, _load_job, gen, progress, task):
-                if isinstance(res, _Bad):
+                if isinstance(res, BadInput):
                     bad(res)
                     continue
                 clip, sk = res
                 if skeleton is None:
                     skeleton = sk
                 elif sk.name != skeleton.name:
-                    bad(_Bad(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
+                    bad(BadInput(clip.origin, SkeletonError(f"{clip.origin}: skeleton {sk.name!r} differs from "
                                                         f"{skeleton.name!r} of earlier clips")))
                     continue
                 loaded.append(clip)
@@ -311,22 +265,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                 dup = sorted({n for n in names if names.count(n) > 1})[:5]
                 raise MotionFormatError(", ".join(map(str, inputs)), f"clip names occur twice: {dup}")
 
-            split_of: dict[str, str] = {}
-            captions: dict[str, list] = {}
-            if ann is not None:
-                if cfg.limit is None:
-                    ann.check_splits(set(names), cfg.pattern)
-                split_of = ann.split_of()
-                keep = []
-                for c in loaded:
-                    try:
-                        captions[c.name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(c.name)]
-                        keep.append(c)
-                    except MotionFormatError as e:
-                        bad(_Bad(c.origin, e))
-                loaded = keep
-                if not loaded:
-                    nothing_left("captions")
+            split_of = ann.split_of() if ann is not None else {}
+            if any(c.origin.lower().endswith(".npy") for c in loaded):
+                info(f".npy joint arrays carry no frame rate: read as {cfg.npy_fps:g} fps (--npy-fps)")
 
             ref = cfg.reference_clip or next((c.name for c in loaded if split_of.get(c.name) == "train"),
                                              loaded[0].name)
@@ -339,7 +280,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
             jobs = ((c.origin, c.positions, skeleton, offsets, cfg) for c in loaded)
             clips: list[Clip] = []
             for c, res in zip(loaded, _map(pool, _feature_job, jobs, progress, task2)):
-                if isinstance(res, _Bad):
+                if isinstance(res, BadInput):
                     bad(res)
                     continue
                 clips.append(Clip(c.name, res.features, res.joints, res.local_quats, res.root_translation,

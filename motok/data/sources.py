@@ -25,7 +25,7 @@ import numpy as np
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.errors import MissingFileError
 
-__all__ = ["MotionSource", "iter_sources", "count_sources", "load_npy_positions", "ARCHIVE_SUFFIXES"]
+__all__ = ["MotionSource", "iter_sources", "count_sources", "list_sources", "load_npy_positions", "ARCHIVE_SUFFIXES"]
 
 KIND_OF_SUFFIX = {".bvh": "bvh", ".npy": "npy"}
 ARCHIVE_SUFFIXES = {".zip": "zip", ".tar": "tar", ".tar.gz": "tar", ".tgz": "tar", ".tar.xz": "tar",
@@ -70,8 +70,13 @@ def _matches(name: str, pattern: str) -> bool:
     return fnmatchcase(name if "/" in pattern else name.rsplit("/", 1)[-1], pattern)
 
 
+def _stem(member: str) -> str:
+    """The clip name of a file or archive member: its stem."""
+    return PurePosixPath(member.replace("\\", "/")).stem
+
+
 def _source(member: str, origin: str, data: bytes, kind: str) -> MotionSource:
-    return MotionSource(PurePosixPath(member.replace("\\", "/")).stem, origin, data, kind)
+    return MotionSource(_stem(member), origin, data, kind)
 
 
 def _dir_files(root: Path, pattern: str, kinds) -> list[tuple[str, str]]:
@@ -208,6 +213,34 @@ def count_sources(path, *, pattern: str = "*", kinds=("bvh", "npy")) -> int | No
         raise MotionFormatError(str(path), "unknown input type: expected a .bvh or .npy file, a directory, "
                                 "or a .zip/.tar/.tar.gz/.tar.xz/.tar.bz2 archive")
     return int(KIND_OF_SUFFIX[path.suffix.lower()] in kinds and _matches(path.name, pattern))
+
+
+def list_sources(path, *, pattern: str = "*", kinds=("bvh", "npy")) -> list[tuple[str, str]]:
+    """``(clip name, origin)`` of every source :func:`iter_sources` will yield, in its order,
+    without parsing any, so that what the inputs hold (split entries, caption files, names that
+    occur twice) is checked before the work starts. A compressed tar is decompressed once to
+    list it (about 6 s for Bandai-Namco set 2, against minutes of parsing)."""
+    path, kinds = Path(path), tuple(kinds)
+    if not path.exists():
+        raise MissingFileError(f"{path}: no such file or directory")
+    if path.is_dir():
+        return [(_stem(rel), str(path / rel)) for rel, _ in _dir_files(path, pattern, kinds)]
+    if path.suffix.lower() in KIND_OF_SUFFIX:
+        ok = KIND_OF_SUFFIX[path.suffix.lower()] in kinds and _matches(path.name, pattern)
+        return [(path.stem, str(path))] if ok else []
+    what = _input_type(path)
+    try:
+        if what == "zip":
+            with zipfile.ZipFile(path) as zf:
+                return [(_stem(i.filename), f"{path}:{i.filename}") for i, _ in _zip_members(zf, pattern, kinds)]
+        if what == "tar":
+            with _open_stream(path) as raw, tarfile.open(fileobj=raw, mode="r|") as tf:
+                return [(_stem(m.name), f"{path}:{m.name}") for m in tf  # skips each member's data unread
+                        if m.isfile() and _kind(m.name, kinds) and _matches(m.name, pattern)]
+    except _READ_ERRORS as e:
+        raise MotionFormatError(str(path), f"not a readable archive ({type(e).__name__}: {e})") from e
+    raise MotionFormatError(str(path), "unknown input type: expected a .bvh or .npy file, a directory, "
+                            "or a .zip/.tar/.tar.gz/.tar.xz/.tar.bz2 archive")
 
 
 def load_npy_positions(data: bytes, source) -> np.ndarray:

@@ -1,5 +1,8 @@
-"""Training curves from metrics JSONL files (one JSON object per line), one subplot per key; several
-runs (the five priors, three navigation policies) overlaid on the same subplots, one colour each."""
+"""Training curves from metrics JSONL files (one JSON object per line), one subplot per quantity:
+its training, validation (``val_``), evaluation (``eval_``) and train-clip (``train_``) values
+overlaid, each panel titled and its axes labelled with units (``motok.render.metric_names``),
+the figure titled with the run's name and kind. Several runs (the five priors, three navigation
+policies) are overlaid on the same subplots, one colour each."""
 
 from __future__ import annotations
 
@@ -12,9 +15,14 @@ from typing import Mapping, Sequence
 
 from motok.atomic import atomic_path, check_writable
 from motok.errors import MissingFileError, UserError
+from motok.render.metric_names import axis_label, describe, split_key
+
+# A quantity's curves in one panel: for several runs the colour is the run's and the line style
+# the data's (training solid, validation dashed, ...); for one run the colour tells them apart.
+LINESTYLES = ("-", "--", ":", "-.")
 
 
-def _is_number(v) -> bool:
+def is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
@@ -86,7 +94,8 @@ def _records(src) -> tuple[list[dict], str]:
 
 def plot_curves(jsonl_path_or_records, out_png: str | os.PathLike, keys: Sequence[str] | None = None,
                 x: str = "iteration", *, smooth: float = 0.0, logy: bool | Sequence[str] = False,
-                title: str | None = None, x2: str | None = None, missing_ok: bool = False) -> Path:
+                title: str | None = None, x2: str | None = None, missing_ok: bool = False,
+                kind: str | None = None) -> Path:
     """Plot metrics against ``x`` (the record index where a record lacks it) into ``out_png``.
 
     The source is a JSONL path or records, or a mapping ``{label: path or records}`` of several
@@ -97,16 +106,18 @@ def plot_curves(jsonl_path_or_records, out_png: str | os.PathLike, keys: Sequenc
     one. ``logy`` is True for every subplot or a list of keys to draw on a log scale. ``x2``
     labels a second, top axis with another field that grows with ``x`` (e.g. ``samples`` below,
     ``wall_s`` on top), read off by interpolation; one run only, since runs differ in speed.
+    Keys of one quantity (``loss``, ``val_loss``) share a panel; ``kind`` (the run's, e.g.
+    ``gpt``) chooses the labels of keys that stages use differently, such as ``loss``.
     """
     fig = _figure(jsonl_path_or_records, keys, x, smooth=smooth, logy=logy, title=title, x2=x2,
-                  missing_ok=missing_ok)
+                  missing_ok=missing_ok, kind=kind)
     out = Path(out_png)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     return out
 
 
-def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, missing_ok=False):
+def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, missing_ok=False, kind=None):
     if not 0.0 <= smooth < 1.0:
         raise UserError(f"smooth must be in [0, 1), got {smooth}")
     many = isinstance(source, Mapping)
@@ -116,7 +127,7 @@ def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, mis
     if many and len(runs) > 1 and x2:
         raise UserError("--x2 labels one run's second axis: give a single run with it")
     names = ", ".join(src for _, src in runs.values())
-    available = list(dict.fromkeys(k for recs, _ in runs.values() for r in recs for k, v in r.items() if _is_number(v)))
+    available = list(dict.fromkeys(k for recs, _ in runs.values() for r in recs for k, v in r.items() if is_number(v)))
     if keys is None:
         keys = [k for k in available if k != x]
     keys = list(keys)
@@ -139,12 +150,12 @@ def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, mis
         if key and key not in available and not (name == "--x" and key == "iteration"):
             raise UserError(f"{names}: {name} {key!r} is not a numeric field of the log; it has: "
                             f"{', '.join(available) or '(nothing numeric)'}")
-    series = {label: {k: [(r[x] if _is_number(r.get(x)) else i, r[k], i) for i, r in enumerate(recs)
-                          if _is_number(r.get(k))] for k in keys} for label, (recs, _) in runs.items()}
+    series = {label: {k: [(r[x] if is_number(r.get(x)) else i, r[k], i) for i, r in enumerate(recs)
+                          if is_number(r.get(k))] for k in keys} for label, (recs, _) in runs.items()}
     top = None
     if x2:
         (recs, source_name), = runs.values()
-        pairs = sorted({(r[x], r[x2]) for r in recs if _is_number(r.get(x)) and _is_number(r.get(x2))})
+        pairs = sorted({(r[x], r[x2]) for r in recs if is_number(r.get(x)) and is_number(r.get(x2))})
         if len(pairs) < 2 or any(b[1] < a[1] for a, b in zip(pairs, pairs[1:])):
             raise UserError(f"{source_name}: {x2!r} must grow with {x!r} to label a second axis")
         top = tuple(map(list, zip(*pairs)))
@@ -155,41 +166,50 @@ def _figure(source, keys, x, *, smooth=0.0, logy=False, title=None, x2=None, mis
     # so this works headless and does not disturb an interactive session that calls it.
     from matplotlib.figure import Figure
 
-    ncols = 1 if len(keys) <= 3 else 2
-    nrows = math.ceil(len(keys) / ncols)
-    fig = Figure(figsize=(6.4 * ncols, 2.6 * nrows + 0.4))
+    panels: dict[str, list[str]] = {}
+    for k in keys:
+        panels.setdefault(split_key(k)[0], []).append(k)
+    ncols = 1 if len(panels) <= 3 else 2
+    nrows = math.ceil(len(panels) / ncols)
+    fig = Figure(figsize=(6.4 * ncols, 2.6 * nrows + 0.4 + 0.3 * bool(title)))
     axes = fig.subplots(nrows, ncols, squeeze=False)
     log_keys = set(keys) if logy is True else set(logy or ())
-    for ax, k in zip(axes.flat, keys):
-        ax.set_title(k, fontsize=10, loc="left")
+    for ax, (quantity, members) in zip(axes.flat, panels.items()):
+        metric = describe(quantity, kind)
+        ax.set_title(metric.label, fontsize=10, loc="left")
+        ax.set_ylabel(metric.unit, fontsize=8)
         ax.grid(True, alpha=0.3)
-        ax.set_xlabel(x, fontsize=8)
+        ax.set_xlabel(axis_label(x, kind), fontsize=8)
         drawn = []
         for c, (label, s) in enumerate(series.items()):
-            pts = sorted(s[k], key=lambda p: p[0])
-            if not pts:
-                continue
-            xs, ys, rows = zip(*pts)
-            drawn += ys
-            color, name = f"C{c}", label or None
-            sparse = dict(marker="o", markersize=3) if len(xs) < 60 else {}  # an evaluation every K iterations
-            if smooth > 0:
-                ax.plot(xs, ys, color=color, alpha=0.25, linewidth=1)
-                ax.plot(xs, _ema(ys, smooth, rows), color=color, linewidth=1.6, label=name, **sparse)
-            else:
-                ax.plot(xs, ys, color=color, linewidth=1.4, label=name, **sparse)
+            for r, k in enumerate(members):
+                pts = sorted(s[k], key=lambda p: p[0])
+                if not pts:
+                    continue
+                xs, ys, rows = zip(*pts)
+                drawn += ys
+                role = split_key(k)[1] if len(members) > 1 else ""
+                name = " · ".join(p for p in (label, role) if p) or None
+                color, style = (f"C{c}", LINESTYLES[r % len(LINESTYLES)]) if len(series) > 1 else (f"C{r}", "-")
+                sparse = dict(marker="o", markersize=3) if len(xs) < 60 else {}  # an evaluation every K iterations
+                if smooth > 0:
+                    ax.plot(xs, ys, color=color, linestyle=style, alpha=0.25, linewidth=1)
+                    ax.plot(xs, _ema(ys, smooth, rows), color=color, linestyle=style, linewidth=1.6, label=name,
+                            **sparse)
+                else:
+                    ax.plot(xs, ys, color=color, linestyle=style, linewidth=1.4, label=name, **sparse)
         if not drawn:
             ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="grey")
             continue
-        if k in log_keys and min(drawn) > 0:
+        if log_keys & set(members) and min(drawn) > 0:
             ax.set_yscale("log")
-        if len(series) > 1:
+        if len(series) > 1 or len(members) > 1:
             ax.legend(fontsize=7, loc="best")
         if top is not None:
             fwd = lambda v, a=top: _interp(v, a[0], a[1])  # noqa: E731
             inv = lambda v, a=top: _interp(v, a[1], a[0])  # noqa: E731
-            ax.secondary_xaxis("top", functions=(fwd, inv)).set_xlabel(x2, fontsize=8)
-    for ax in axes.flat[len(keys):]:
+            ax.secondary_xaxis("top", functions=(fwd, inv)).set_xlabel(axis_label(x2, kind), fontsize=8)
+    for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
     if title:
         fig.suptitle(title)
@@ -206,22 +226,52 @@ def _metrics_file(run_or_jsonl) -> Path:
     return src
 
 
+def run_kind(metrics: Path) -> str | None:
+    """The kind of the run whose ``metrics.jsonl`` this is (``tokenizer``, ``gpt``, ``control-task``
+    ...), from the checkpoint bundle beside it; None for a bare log or a run not saved yet."""
+    bundle = metrics.with_name("bundle.json")
+    try:
+        kind = json.loads(bundle.read_text(encoding="utf-8")).get("kind") if bundle.is_file() else None
+    except (OSError, ValueError, AttributeError):
+        return None  # the figure is still worth drawing without it
+    return str(kind) if kind else None
+
+
+def _run_name(src: Path) -> str:
+    return src.parent.name if src.name == "metrics.jsonl" else src.stem
+
+
+def run_title(srcs: Sequence[Path], names: Sequence[str]) -> str:
+    """``gpt (gpt)``, ``prior_hybrid, prior_continuous (control-prior)``: the runs and their kinds."""
+    kinds = list(dict.fromkeys(k for k in map(run_kind, srcs) if k))
+    return ", ".join(names) + (f" ({', '.join(kinds)})" if kinds else "")
+
+
+def run_sources(runs: Sequence, labels: Sequence[str] | None = None) -> dict[str, Path]:
+    """``{name: metrics.jsonl}`` of run folders or JSONL files, named by ``labels`` or their folders."""
+    srcs = [_metrics_file(r) for r in runs]
+    if labels is not None and len(labels) != len(srcs):
+        raise UserError(f"{len(labels)} labels for {len(srcs)} runs: give one --label per run")
+    names = list(labels) if labels is not None else [_run_name(s) for s in srcs]
+    if len(set(names)) != len(names):
+        raise UserError(f"runs share a name ({', '.join(names)}): tell them apart with --label")
+    return dict(zip(names, srcs))
+
+
 def plot_run(run_or_jsonl, out_png: str | os.PathLike | None = None, keys: Sequence[str] | None = None,
              x: str = "iteration", labels: Sequence[str] | None = None, **kw) -> Path:
     """``motok plot``: a run folder (its ``metrics.jsonl``) or a JSONL file, drawn by
     :func:`plot_curves` to ``out_png`` (default: ``curves.png`` beside the metrics); or a list of
-    them on the same subplots (``out_png`` required), labelled by ``labels`` or their folder names."""
-    many = isinstance(run_or_jsonl, (list, tuple))
-    srcs = [_metrics_file(r) for r in (run_or_jsonl if many else [run_or_jsonl])]
-    if many and len(srcs) > 1 and out_png is None:
+    them on the same subplots (``out_png`` required), labelled by ``labels`` or their folder names.
+    The figure is titled with the runs' names and kinds unless ``title`` is given."""
+    runs = list(run_or_jsonl) if isinstance(run_or_jsonl, (list, tuple)) else [run_or_jsonl]
+    if len(runs) > 1 and out_png is None:
         raise UserError("several runs: name the comparison's file with -o/--out (a .png)")
-    if labels is not None and len(labels) != len(srcs):
-        raise UserError(f"{len(labels)} labels for {len(srcs)} runs: give one --label per run")
+    sources = run_sources(runs, labels)
+    srcs = list(sources.values())
     out = Path(out_png) if out_png is not None else srcs[0].with_name("curves.png")
     check_writable(out, suffixes=(".png",))
-    if len(srcs) == 1:
-        return plot_curves(srcs[0], out, keys, x, **kw)
-    names = list(labels) if labels is not None else [s.parent.name if s.name == "metrics.jsonl" else s.stem for s in srcs]
-    if len(set(names)) != len(names):
-        raise UserError(f"runs share a name ({', '.join(names)}): tell them apart with --label")
-    return plot_curves(dict(zip(names, srcs)), out, keys, x, **kw)
+    kinds = {run_kind(s) for s in srcs}
+    kw.setdefault("title", run_title(srcs, list(sources)))
+    kw.setdefault("kind", kinds.pop() if len(kinds) == 1 else None)
+    return plot_curves(srcs[0] if len(srcs) == 1 else sources, out, keys, x, **kw)

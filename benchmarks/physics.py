@@ -66,6 +66,10 @@ VARIANTS = {
     "default + legs": {**DEFAULT, "self_collision": "legs"},
     "default + none": {**DEFAULT, "self_collision": "none"},
 }
+# --feet: the contact levers against sliding feet (docs/sim.md "Feet"), against today's default.
+FEET = {"default": DEFAULT, "noslip 10": {**DEFAULT, "noslip_iterations": 10},
+        "elliptic, impratio 3": {**DEFAULT, "cone": "elliptic", "impratio": 3.0},
+        "PD damping x2 (derivative_time 0.2)": {**DEFAULT, "derivative_time": 0.2}}
 MORE = {"today + elliptic cone": ("cone", mujoco.mjtCone.mjCONE_ELLIPTIC),
         "today + CG solver": ("solver", mujoco.mjtSolver.mjSOL_CG)}
 GROUPS = {"walk": ["walk_normal"], "other": ["walk_elderly:3", "walk_exhausted:3", "walk_active:3", "run_normal:8",
@@ -185,11 +189,12 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=Path("runs/bandai2.h5"), help="Bandai-Namco set 2 motion-dataset")
     ap.add_argument("--repeats", type=int, default=4, help="rounds of rate measurements")
     ap.add_argument("--more", action="store_true", help="also the elliptic cone and the CG solver")
+    ap.add_argument("--feet", action="store_true", help="the contact levers against sliding feet, against the default")
     args = ap.parse_args()
     t_start = time.perf_counter()
     body = measure_humanoid(args.data)
     hums = {k: humanoid_from_model(mujoco.MjModel.from_xml_string(humanoid_xml(body, HumanoidConfig(**v))[0]))
-            for k, v in VARIANTS.items()}
+            for k, v in (FEET if args.feet else VARIANTS).items()}
     base = next(iter(hums))
     if args.more:  # runtime options of the solver, not builder options
         for k, (field, value) in MORE.items():

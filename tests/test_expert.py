@@ -128,6 +128,9 @@ def test_expert_loop_on_a_standing_reference_logs_its_metrics(hum, tmp_path):
     assert [r["iteration"] for r in rows] == [1, 2, 3]
     assert ["eval_success" in r for r in rows] == [False, True, False]  # eval_every=2
     assert 0.0 <= rows[1]["eval_success_any_body"] <= rows[1]["eval_success"] <= 1.0 and rows[1]["eval_seconds"] > 0
+    # the feet during training, beside the clips' own: a standing reference's soles do not move
+    assert rows[1]["eval_ref_sole_slip_cm_s"] == 0 and rows[1]["eval_sole_slip_cm_s"] >= 0
+    assert {"eval_skate_cm_s", "eval_jitter_m_s3", "eval_ref_jitter_m_s3"} <= rows[1].keys()
     for r in rows:
         assert 0.0 < r["r_im"] <= 1.0 and "r_style" not in r and r["samples_per_s"] > 0  # no AMP hook
     done = [r for r in rows if "success" in r]

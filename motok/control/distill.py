@@ -269,7 +269,7 @@ def train(cfg: DistillConfig, run, expert_run, lib: ReferenceLibrary, *, resume:
 
     def eval_hook(tr: DistillTrainer) -> dict:
         return eval_metrics(evaluate(hum, StudentPolicy(tr.model), lib, cfg.env, cfg.task, cfg.action, clips=ids,
-                                     batch=cfg.eval_batch))
+                                     batch=cfg.eval_batch, feet=True))
 
     return runner.train(lambda d: DistillTrainer(cfg, hum, lib, ecfg, expert, d), cfg, run, hum, kind=KIND,
                         resume=resume, until=until, data=data, command=command,

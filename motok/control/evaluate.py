@@ -26,11 +26,16 @@ ERRORS = ("mpjpe_mm", "g_mpjpe_mm", "root_vel_err_mm", "root_acc_err_mm")
 
 
 def eval_metrics(res: dict, prefix: str = "eval_") -> dict:
-    """The overall numbers of :func:`evaluate` as training metrics."""
+    """The overall numbers of :func:`evaluate` as training metrics (with ``feet``, :data:`FEET` of
+    the simulated motion and, prefixed ``ref_``, of its reference)."""
     o = res["overall"]
-    return {f"{prefix}success": o["success_rate"], f"{prefix}success_any_body": o["success_rate_any_body"],
-            f"{prefix}seconds": o["seconds_played"] / max(o["clips"], 1), f"{prefix}mpjpe_mm": o["mpjpe_mm"],
-            f"{prefix}g_mpjpe_mm": o["g_mpjpe_mm"]}
+    out = {f"{prefix}success": o["success_rate"], f"{prefix}success_any_body": o["success_rate_any_body"],
+           f"{prefix}seconds": o["seconds_played"] / max(o["clips"], 1), f"{prefix}mpjpe_mm": o["mpjpe_mm"],
+           f"{prefix}g_mpjpe_mm": o["g_mpjpe_mm"]}
+    if "feet" in res:  # the simulated feet, and the clips' own over the same frames (``ref_``)
+        for who, tag in (("simulated", ""), ("reference", "ref_")):
+            out.update({f"{prefix}{tag}{k}": res["feet"][who][k] for k in FEET})
+    return out
 
 
 def policy_device(policy):

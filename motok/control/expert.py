@@ -231,7 +231,7 @@ def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resum
 
     def eval_hook(tr: ExpertTrainer) -> dict:
         return eval_metrics(evaluate(hum, tr.ac, lib, cfg.env, cfg.task, cfg.action, clips=ids,
-                                     batch=cfg.sampling.eval_batch))
+                                     batch=cfg.sampling.eval_batch, feet=True))
 
     start, extra = None, {}
     if init is not None:

@@ -39,7 +39,7 @@ LEVERS = {
     "feet3": ([], ["task.reward.k_feet=3.0"]),
     "filter0.3": ([], ["env.target_filter=0.3"]),  # a stronger low-pass on the PD targets
     "kv2": (["derivative_time=0.2"], []),  # twice the PD damping
-    "damp2": (["contact_solref=[0.02,2.0]"], []),  # overdamped contacts
+    "ankle0.5": (["ankle_stiffness_scale=0.5"], []),  # compliant ankles (0.3 cannot stand)
     "elliptic": (["cone=elliptic", "impratio=10"], []),  # harder friction (1.7x the physics cost)
     "noslip": (["noslip_iterations=10"], []),
     "elliptic3": (["cone=elliptic", "impratio=3"], []),  # elliptic at impratio 10 diverges standing
@@ -156,8 +156,10 @@ def main() -> None:
     if unknown:
         p.error(f"unknown lever {unknown[0]!r} (expected some of: {', '.join(LEVERS)})")
     if a.pd:
-        rows = {name: pd_feet(name, a, motok) for name in a.levers}
-        (a.runs / "pd.json").write_text(json.dumps(rows, indent=1))
+        path = a.runs / "pd.json"
+        rows = json.loads(path.read_text()) if path.exists() else {}
+        rows.update({name: pd_feet(name, a, motok) for name in a.levers})
+        path.write_text(json.dumps(rows, indent=1))
         print(pd_table(rows))
         return
     for name in a.levers:

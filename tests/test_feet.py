@@ -51,6 +51,21 @@ def test_the_contact_model_is_in_the_mjcf_and_its_metadata(body):
             HumanoidConfig(**bad)
 
 
+def test_ankle_stiffness_scales_the_ankles_gains_alone(body):
+    m, half = _model(body), _model(body, ankle_stiffness_scale=0.5)
+    hum = humanoid_from_model(m)
+    sk = hum.skeleton
+    ankles = {hum.layout.names[a] for a in (sk.feet_left[0], sk.feet_right[0])}
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(m.nu)]
+    at_ankle = np.array([n.rsplit("_", 1)[0] in ankles for n in names])
+    assert at_ankle.sum() == 6  # three hinges per ankle
+    np.testing.assert_allclose(half.actuator_gainprm[at_ankle, 0], 0.5 * m.actuator_gainprm[at_ankle, 0])
+    np.testing.assert_allclose(half.actuator_biasprm[at_ankle, 1:3], 0.5 * m.actuator_biasprm[at_ankle, 1:3])
+    np.testing.assert_array_equal(half.actuator_gainprm[~at_ankle], m.actuator_gainprm[~at_ankle])
+    with pytest.raises(HumanoidError, match="ankle_stiffness_scale"):
+        HumanoidConfig(ankle_stiffness_scale=0)
+
+
 def _feet_drift(m, hum, seconds=5.0, settle=0.5):
     """Largest displacement (m) of any foot or toe body between ``settle`` s and ``seconds`` s of the
     rest pose under PD targets 0; and the root's height drop."""
@@ -66,7 +81,7 @@ def _feet_drift(m, hum, seconds=5.0, settle=0.5):
 
 
 @pytest.mark.parametrize("contacts", [{}, {"cone": "elliptic", "impratio": 3}, {"noslip_iterations": 10},
-                                      {"derivative_time": 0.2}])
+                                      {"derivative_time": 0.2}, {"ankle_stiffness_scale": 0.5}])
 def test_a_standing_pose_keeps_its_feet_still_for_5_seconds(body, contacts):
     """Once the soles have settled into the soft floor (half a second), the feet of the rest pose
     under PD hold within 3 mm for the next 4.5 s, in the default world and the others measured

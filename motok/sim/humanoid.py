@@ -50,6 +50,9 @@ class HumanoidConfig:
     stiffness_per_kg: float = 15.0  # Nm/rad per kg moved: the ankle then holds ~1000 Nm/rad, > m g l
     min_stiffness: float = 40.0  # Nm/rad; keeps light distal joints (elbows, neck) from being floppy
     derivative_time: float = 0.1  # kv = derivative_time * kp (PHC's kp/kd ratio of 10)
+    # The ankles' stiffness (and so damping) as a share of the mass rule's: a compliant ankle lets
+    # the sole settle flat on the floor instead of holding the reference's foot angle against it.
+    ankle_stiffness_scale: float = 1.0
     armature: float = 0.02
     friction: float = 1.0
     # Physics cost: benchmarks/physics.py steps states recorded from PD tracking of walk, run, turn
@@ -93,6 +96,8 @@ class HumanoidConfig:
             raise HumanoidError(f"jacobian must be auto, dense or sparse, not {self.jacobian!r}")
         if self.solver_iterations < 1 or self.ls_iterations < 1:
             raise HumanoidError("solver_iterations and ls_iterations must be at least 1")
+        if not (np.isfinite(self.ankle_stiffness_scale) and self.ankle_stiffness_scale > 0):
+            raise HumanoidError(f"ankle_stiffness_scale must be a finite number > 0, not {self.ankle_stiffness_scale!r}")
         if self.cone not in ("pyramidal", "elliptic"):
             raise HumanoidError(f"cone must be pyramidal or elliptic, not {self.cone!r}")
         if not (np.isfinite(self.impratio) and self.impratio >= 1):

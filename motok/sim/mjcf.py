@@ -302,6 +302,9 @@ def humanoid_xml(body: HumanoidBody, cfg: HumanoidConfig | None = None) -> tuple
     body_ids = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in layout.names])
     gains = {n: max(cfg.stiffness_per_kg * m, cfg.min_stiffness)
              for n, m in _moved_mass(model, layout, skeleton, body_ids).items()}
+    for a in (skeleton.feet_left[0], skeleton.feet_right[0]):
+        for hn in (f"{layout.names[a]}_{x[-1]}" for x in layout.axes[a]):
+            gains[hn] *= cfg.ankle_stiffness_scale
     excludes = _rest_contacts(model)
     return mjcf_text(*parts, gains, excludes, meta, bits), excludes
 

@@ -69,7 +69,8 @@ VARIANTS = {
 # --feet: the contact levers against sliding feet (docs/sim.md "Feet"), against today's default.
 FEET = {"default": DEFAULT, "noslip 10": {**DEFAULT, "noslip_iterations": 10},
         "elliptic, impratio 3": {**DEFAULT, "cone": "elliptic", "impratio": 3.0},
-        "PD damping x2 (derivative_time 0.2)": {**DEFAULT, "derivative_time": 0.2}}
+        "PD damping x2 (derivative_time 0.2)": {**DEFAULT, "derivative_time": 0.2},
+        "ankles at half stiffness": {**DEFAULT, "ankle_stiffness_scale": 0.5}}
 MORE = {"today + elliptic cone": ("cone", mujoco.mjtCone.mjCONE_ELLIPTIC),
         "today + CG solver": ("solver", mujoco.mjtSolver.mjSOL_CG)}
 GROUPS = {"walk": ["walk_normal"], "other": ["walk_elderly:3", "walk_exhausted:3", "walk_active:3", "run_normal:8",

@@ -11,7 +11,8 @@ import math
 
 import torch
 
-from motok.control import runner, task_train
+from motok.control.highlevel import train as task_train
+from motok.control.rl import runner
 
 
 def codebook_entropy(run, episodes: int) -> tuple[list[float], float]:

@@ -2,7 +2,7 @@
 
 ``motok.sim.soles`` finds the simulated soles sliding (about 60 cm/s while within 1 cm of the
 floor). That measure judges contact by height; this one asks MuJoCo. The clips are played as
-``control track`` plays them (``motok.control.evaluate.play``, the rollout stepper, which starts
+``control track`` plays them (``motok.control.tasks.imitation_eval.play``, the rollout stepper, which starts
 every control step from a zero warm start), every control step's state and PD targets are
 recorded, and each step is replayed substep by substep in one ``MjData``; at every substep each
 contact between a foot or toe geom and the floor gives its normal force, its friction force and
@@ -29,7 +29,7 @@ from dataclasses import replace
 import mujoco
 import numpy as np
 
-from motok.control.evaluate import play
+from motok.control.tasks.imitation_eval import play
 from motok.control.track import load_controller, place_on_floor
 from motok.data.dataset import select_clips
 from motok.sim.reference import load_library
@@ -74,7 +74,7 @@ def main() -> None:
     sim = replace(cfg.env, stepper="rollout", nthread=1)
     task = replace(cfg.task, max_episode_seconds=1e9)
 
-    import motok.control.evaluate as ev
+    import motok.control.tasks.imitation_eval as ev
     made = []
     real = ev.HumanoidEnv
 
@@ -90,7 +90,7 @@ def main() -> None:
     finally:
         ev.HumanoidEnv = real
     if not made:
-        raise SystemExit("play() no longer builds its environment through motok.control.evaluate.HumanoidEnv: "
+        raise SystemExit("play() no longer builds its environment through motok.control.tasks.imitation_eval.HumanoidEnv: "
                          "nothing was recorded; update this script")
     env = made[0]
     m = hum.model

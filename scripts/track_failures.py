@@ -66,7 +66,7 @@ def summary(report: dict, content: dict[str, str]) -> dict[str, dict]:
 def how_they_failed(controller: tuple, motion: str, names: list[str]) -> dict:
     """The failed clips played again by ``controller`` (``motok.control.track.load_controller``'s
     tuple): head height and planar root distance at the last step, and the seconds played."""
-    from motok.control.evaluate import play
+    from motok.control.tasks.imitation_eval import play
     from motok.control.track import place_on_floor
     from motok.sim.reference import load_library
     cfg, hum, policy, _ = controller

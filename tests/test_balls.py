@@ -1,4 +1,4 @@
-"""Thrown balls (motok.sim.balls) and the perturbation test (motok.control.perturb), hybrid-latent
+"""Thrown balls (motok.sim.balls) and the perturbation test (motok.control.highlevel.perturb), hybrid-latent
 paper section 6.3.3: the ball model, the humanoid's state as a prefix of it, launches, hits
 checked against MuJoCo's own contact list, the pool, and perturb()'s counts."""
 
@@ -9,8 +9,8 @@ import pytest
 
 import mujoco
 
-from motok.control.perturb import PerturbConfig, Windows, perturb
-from motok.control.tasks.base import TaskEnv
+from motok.control.highlevel.perturb import PerturbConfig, Windows, perturb
+from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 from motok.sim.balls import (ball_states, build_ball_model, detect_hits, find_balls, humanoid_capsules, launch_balls,
                              park_balls, segment_distance, set_balls)

@@ -1,4 +1,4 @@
-"""The physics expert (motok.control.expert): Eq. 10 product reward, learning on a trivial task,
+"""The physics expert (motok.control.expert.train): Eq. 10 product reward, learning on a trivial task,
 exact resume, and the `motok control expert` commands."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp, train
+from motok.control.expert.train import ExpertConfig, ExpertTrainer, imitation_mdp, train
 from motok.control.mdp.actions import ActionConfig
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
 from motok.errors import UserError
@@ -157,8 +157,8 @@ def test_a_warm_start_begins_from_the_other_runs_weights_and_not_its_counters(hu
 def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(hum, walk_lib, tmp_path):
     import signal
 
-    from motok.control import runner
-    from motok.control.expert import KIND
+    from motok.control.rl import runner
+    from motok.control.expert.train import KIND
 
     cfg = small_cfg(iterations=6, save_every=2)
     before = signal.getsignal(signal.SIGTERM)

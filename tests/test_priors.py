@@ -1,5 +1,5 @@
-"""The latent priors (motok.control.priors) and their online distillation (motok.control.distill,
-motok.control.dagger): where the gradients go, quantizer dropout and decoding from codes, the
+"""The latent priors (motok.control.priors.model) and their online distillation (motok.control.priors.distill,
+motok.control.priors.dagger): where the gradients go, quantizer dropout and decoding from codes, the
 Gaussian KL, the label conversion between action bases, learning, exact resume, the command."""
 
 from __future__ import annotations
@@ -16,13 +16,13 @@ import torch
 from safetensors.torch import load_file
 
 from motok.config import load_config
-from motok.control.dagger import expert_labels
-from motok.control.distill import (DistillConfig, DistillTrainer, WeightSchedule, distill_loss, expert_path,
+from motok.control.priors.dagger import expert_labels
+from motok.control.priors.distill import (DistillConfig, DistillTrainer, WeightSchedule, distill_loss, expert_path,
                                    latent_change, load_prior, train)
-from motok.control.expert import ExpertConfig, imitation_mdp, load_expert
-from motok.control.expert import train as train_expert
+from motok.control.expert.train import ExpertConfig, imitation_mdp, load_expert
+from motok.control.expert.train import train as train_expert
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.priors import KINDS, LatentPrior, PriorConfig, gaussian_kl
+from motok.control.priors.model import KINDS, LatentPrior, PriorConfig, gaussian_kl
 from motok.sim.env import SimConfig
 from motok.sim.reference import load_library
 

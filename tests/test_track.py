@@ -13,7 +13,7 @@ import torch
 from typer.testing import CliRunner
 
 from motok.artifacts import Provenance
-from motok.control.expert import ExpertConfig, build_actor_critic, imitation_mdp
+from motok.control.expert.train import ExpertConfig, build_actor_critic, imitation_mdp
 from motok.control.track import from_mj, place_on_floor, report_path, track
 from motok.data.dataset import MotionFile, write_motion
 from motok.eval.metrics import mpjpe

@@ -1,7 +1,7 @@
 """``motok control distill`` (the latent priors, distilled online from an expert), ``motok
 control eval --task imitation --prior`` (how well a distilled prior imitates) and ``motok control
-generate`` (what a prior does on its own). Arguments only; the work is in ``motok.control.distill``,
-``motok.control.prior_eval`` and ``motok.control.generate``. :func:`register` adds the commands to
+generate`` (what a prior does on its own). Arguments only; the work is in ``motok.control.priors.distill``,
+``motok.control.priors.evaluate`` and ``motok.control.priors.generate``. :func:`register` adds the commands to
 the ``motok control`` app."""
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def distill_cmd(
 ):
     """Distil the expert into a latent prior: the student acts, the expert labels (DAgger), Eq. 6."""
     from motok.config import load_config
-    from motok.control.distill import DistillConfig, train_from_expert
+    from motok.control.priors.distill import DistillConfig, train_from_expert
 
     cfg = run(load_config, DistillConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_expert, cfg, expert, out, prior=prior, data=data, clips=clips, split=split,
@@ -76,7 +76,7 @@ def eval_cmd(
                           valid_device(device))
     if prior is None:
         fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --run RUN)")
-    from motok.control.prior_eval import evaluate_prior
+    from motok.control.priors.evaluate import evaluate_prior
 
     res = run(evaluate_prior, prior, task=task, data=data, clips=clips, split=split, codebooks=codebooks,
               render=render, termination=termination, distance=distance, device=valid_device(device))
@@ -92,7 +92,7 @@ def eval_cmd(
 def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json, device=None) -> None:
     if run_dir is None or prior is not None:
         fail(f"--task {task} evaluates a trained task policy: pass --run RUN (from `motok control train`), not --prior")
-    from motok.control.task_train import evaluate_run
+    from motok.control.highlevel.train import evaluate_run
 
     res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render,
               device=device, task=task)
@@ -124,7 +124,7 @@ def generate_cmd(
     as_json: bool = JsonOut,
 ):
     """Unconditional generation: random codes (or prior draws) at every step from reference start states."""
-    from motok.control.generate import generate
+    from motok.control.priors.generate import generate
 
     res = run(generate, prior, out, codebooks=codebooks, seconds=seconds, num_samples=num, seed=seed, data=data,
               clips=clips, split=split, render=render)

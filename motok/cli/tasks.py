@@ -1,6 +1,6 @@
 """``motok control train --task T --prior PRIOR`` (a high-level policy over a frozen prior) and
 ``motok control perturb`` (thrown balls at a trained policy). Arguments only; the work is in
-``motok.control.task_train`` and ``motok.control.perturb``. :func:`register` adds the commands
+``motok.control.highlevel.train`` and ``motok.control.highlevel.perturb``. :func:`register` adds the commands
 to the ``motok control`` app; ``motok control eval --task T --run RUN`` is in ``cli/priors.py``."""
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def train_cmd(
 ):
     """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
     from motok.config import load_config
-    from motok.control.task_train import TaskTrainConfig, train_from_prior
+    from motok.control.highlevel.train import TaskTrainConfig, train_from_prior
 
     cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,
@@ -56,7 +56,7 @@ def perturb_cmd(
     as_json: bool = JsonOut,
 ):
     """Thrown balls (10 cm, 4.2 kg, 10-20 m/s from 1 m) at a trained policy, zero-shot: hits, falls, recoveries."""
-    from motok.control.perturb import PerturbConfig, perturb_run
+    from motok.control.highlevel.perturb import PerturbConfig, perturb_run
 
     res = run(lambda: perturb_run(run_dir, episodes=episodes, seed=seed, render=render,
                                   cfg=PerturbConfig(period=period)))

@@ -39,7 +39,7 @@ import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
-from motok.control.evaluate import clip_slip, play, slip_report
+from motok.control.tasks.imitation_eval import clip_slip, play, slip_report
 from motok.data.dataset import TRACKED_TO_END, Clip, MotionFile, write_motion
 from motok.errors import UserError
 from motok.eval.metrics import mpjpe
@@ -88,10 +88,10 @@ def load_controller(expert=None, prior=None, codebooks: int | None = None) -> tu
     if (expert is None) == (prior is None):
         raise UserError("track with one controller: --expert RUN or --prior PRIOR")
     if expert is not None:
-        from motok.control.expert import load_expert
+        from motok.control.expert.train import load_expert
         return load_expert(expert)
-    from motok.control.dagger import StudentPolicy
-    from motok.control.distill import load_prior
+    from motok.control.priors.dagger import StudentPolicy
+    from motok.control.priors.distill import load_prior
     cfg, hum, model, meta = load_prior(prior)
     return cfg, hum, StudentPolicy(model, codebooks), meta
 
@@ -99,7 +99,7 @@ def load_controller(expert=None, prior=None, codebooks: int | None = None) -> tu
 def track(controller, motion, out, *, clips: str | None = None, split: str | None = None, render=None,
           batch: int = 256, chunk: int = 2048) -> dict:
     """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with ``controller``, a
-    ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
+    ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.train.load_expert``
     returns, and write the simulated clips to ``out``, and the per-clip and overall results beside
     it (:func:`report_path`, kind ``control-track``), which it also returns.
 

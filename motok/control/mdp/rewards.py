@@ -7,7 +7,7 @@
   DeepMimic's pose term), ``e_alpha`` the mean over hinges of squared joint velocity errors
   ((rad/s)^2; a sum would make ``exp(-0.5 e)`` vanish for any walking policy), ``e_ee`` the sum
   over end effectors of squared root-relative position errors (m^2).
-* The style reward (Eq. 11) is a learned term: ``motok.control.amp``.
+* The style reward (Eq. 11) is a learned term: ``motok.control.rl.amp``.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ reference window at their frames.
   also the first keyframe. ``num_keyframes`` keyframes in all (``mdp.keyframes.sample_keyframes``:
   the start, random interior frames at least ``min_keyframe_gap_seconds`` apart, the window's last
   frame). Training uses 4 per 4 s window (C.1); the paper's Table 2 evaluates with 5 per 4 s, which
-  ``eval_keyframes`` holds and ``motok.control.task_eval.evaluate_inbetween`` switches to;
+  ``eval_keyframes`` holds and ``motok.control.tasks.episodes.evaluate_inbetween`` switches to;
 * goal: Eq. 12 position and rotation differences to two keyframes, plus (added to them, as the
   fork does) the Eq. 13 sinusoidal encoding of the frames left until the next keyframe.
   ``goal_keyframes="next"``: the next keyframe to reach and the one after it (the last keyframe

@@ -1,5 +1,5 @@
 """The tasks a high-level policy learns (``motok control train --task NAME``): each a config, a
-task class on the :class:`~motok.control.tasks.base.Task` protocol and an evaluation function
+task class on the :class:`~motok.control.mdp.task_env.Task` protocol and an evaluation function
 ``evaluate(mdp, act, episodes) -> dict`` (the paper's metrics for that task). A task may also
 have ``markers() -> (N, K, 3)``, world points a video draws (targets, keyframes, a head target)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from motok.control.nav_eval import evaluate_navigation
-from motok.control.task_eval import evaluate_hmd, evaluate_inbetween
+from motok.control.tasks.nav_eval import evaluate_navigation
+from motok.control.tasks.episodes import evaluate_hmd, evaluate_inbetween
 from motok.control.tasks.hmd import HMDTask, HMDTaskConfig
 from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
 from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig

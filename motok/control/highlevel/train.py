@@ -1,13 +1,13 @@
 """Task learning over a frozen latent prior (hybrid-latent paper section 6.3, appendix C, Tables
 6-8): ``motok control train --task navigation|inbetween|hmd --prior PRIOR``.
 
-PPO (``motok.control.ppo``, the same update as the expert's) trains the high-level policy of
-``motok.control.highlevel`` on a task of ``motok.control.tasks`` with the task's reward alone;
+PPO (``motok.control.rl.ppo``, the same update as the expert's) trains the high-level policy of
+``motok.control.highlevel.policy`` on a task of ``motok.control.tasks`` with the task's reward alone;
 the prior's decoder turns each high-level action into PD targets and is never trained. The
 defaults follow Tables 6-8 where this machine allows (clip 0.1, lr 5e-5, horizon 16, gamma 0.99,
 lambda 0.95); the network and batch sizes are the CPU recipe's.
 
-The runner (``motok.control.runner``) does seeding, checkpoints, exact resume, metrics,
+The runner (``motok.control.rl.runner``) does seeding, checkpoints, exact resume, metrics,
 provenance and the MJCF hash; the bundle (kind ``control-task``) links the prior it was trained
 over (relative and absolute path, weights hash) and records the task, its config and the
 high-level action space.
@@ -27,19 +27,19 @@ from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
 from motok.checkpoint import read_meta, register_kind
 from motok.config import from_dict
-from motok.control import runner
-from motok.control.distill import KIND as PRIOR_KIND
-from motok.control.distill import DistillConfig, load_prior, split_state
-from motok.control.evaluate import policy_device
-from motok.control.generate import check_codebooks
-from motok.control.highlevel import HighLevelNetConfig, LatentActionMap, action_space, build_high_level
-from motok.control.nav_eval import idle_matching
-from motok.control.networks import ActorCritic
-from motok.control.ppo import PPO, PPOConfig
-from motok.control.priors import LatentPrior
-from motok.control.rollout import Collector, as_tensor
+from motok.control.rl import runner
+from motok.control.priors.distill import KIND as PRIOR_KIND
+from motok.control.priors.distill import DistillConfig, load_prior, split_state
+from motok.control.tasks.imitation_eval import policy_device
+from motok.control.priors.generate import check_codebooks
+from motok.control.highlevel.policy import HighLevelNetConfig, LatentActionMap, action_space, build_high_level
+from motok.control.tasks.nav_eval import idle_matching
+from motok.control.rl.networks import ActorCritic
+from motok.control.rl.ppo import PPO, PPOConfig
+from motok.control.priors.model import LatentPrior
+from motok.control.rl.rollout import Collector, as_tensor
 from motok.control.tasks import registry
-from motok.control.tasks.base import TaskEnv
+from motok.control.mdp.task_env import TaskEnv
 from motok.distributed import Dist
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig

@@ -1,6 +1,6 @@
 """Evaluation of an imitation policy: every clip played from its first frame with the most
 likely action (``motok control expert eval``, the ``eval_*`` metrics logged during training, and
-the difficulty evaluations of ``motok.control.sampling``)."""
+the difficulty evaluations of ``motok.control.rl.sampling``)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from functools import partial
 import numpy as np
 
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.networks import ActorCritic
-from motok.control.rollout import as_tensor
-from motok.control.tasks.base import TaskEnv
+from motok.control.rl.networks import ActorCritic
+from motok.control.rl.rollout import as_tensor
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.eval.metrics import acceleration_error, mpjpe, velocity_error
 from motok.sim.env import HumanoidEnv, SimConfig

@@ -1,9 +1,9 @@
 """Online distillation of a latent prior from the frozen expert (hybrid-latent paper section
 4.3.1, Eq. 6): ``motok control distill``.
 
-Per iteration the student (:class:`motok.control.priors.LatentPrior`) acts in the batched
+Per iteration the student (:class:`motok.control.priors.model.LatentPrior`) acts in the batched
 imitation MDP with its own actions on the current-pose base, the expert labels every visited
-state (:mod:`motok.control.dagger`: DAgger, with the label conversion), and a supervised update
+state (:mod:`motok.control.priors.dagger`: DAgger, with the label conversion), and a supervised update
 over minibatches minimises Eq. 6,
 
     L = 10 ||a - a_label||^2 + alpha L_reg + beta L_commit + gamma L_mm  (+ w_kl KL(q || p))
@@ -15,7 +15,7 @@ hybrids) and ``w_kl`` (continuous) ramped linearly from 0.1 to 1.0 and 0.05 to 0
 12.5 % of the iterations (the authors' schedule). Minibatches are sets of whole environment
 columns, so both steps of every neighbouring pair are in the same forward pass.
 
-The runner (:mod:`motok.control.runner`) does seeding, checkpoints and exact resume, metrics,
+The runner (:mod:`motok.control.rl.runner`) does seeding, checkpoints and exact resume, metrics,
 provenance, the MJCF copy and hash, and torchrun. The bundle (kind ``control-prior``) records the
 expert it was distilled from (path relative to the bundle and absolute), the prior's kind, sizes
 and codebooks.
@@ -32,14 +32,14 @@ import torch
 
 from motok.checkpoint import bundle_ref, read_meta, register_kind
 from motok.config import from_dict
-from motok.control import runner
-from motok.control.dagger import DaggerBatch, DaggerCollector, StudentPolicy
-from motok.control.evaluate import eval_metrics, evaluate, subset
-from motok.control.expert import KIND as EXPERT_KIND, imitation_mdp, load_expert, split_state
+from motok.control.rl import runner
+from motok.control.priors.dagger import DaggerBatch, DaggerCollector, StudentPolicy
+from motok.control.tasks.imitation_eval import eval_metrics, evaluate, subset
+from motok.control.expert.train import KIND as EXPERT_KIND, imitation_mdp, load_expert, split_state
 from motok.control.mdp.actions import ActionConfig
-from motok.control.networks import ActorCritic
-from motok.control.ppo import average_gradients, world_size
-from motok.control.priors import KINDS, LatentPrior, Latents, PriorConfig, squared_norm
+from motok.control.rl.networks import ActorCritic
+from motok.control.rl.ppo import average_gradients, world_size
+from motok.control.priors.model import KINDS, LatentPrior, Latents, PriorConfig, squared_norm
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.data.dataset import select_clips
 from motok.distributed import Dist

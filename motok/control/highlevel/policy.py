@@ -12,7 +12,7 @@ proprioception ``s`` (Eq. 7) and the task goal ``g`` and chooses the latent:
   paper's Fig. 4 right shows the result depends on it), ``z = mu_p(s) + u`` (Eq. 2's prior mean).
 
 The environment sees the decoder's action: :class:`LatentActionMap` is the action map of
-``motok.control.tasks.base.TaskEnv`` that turns the high-level action into PD targets on the
+``motok.control.mdp.task_env.TaskEnv`` that turns the high-level action into PD targets on the
 current pose (``q_hat = q + scale pi_low(s, z_bar)``, how the prior was distilled). PPO optimises
 the high-level policy only; the prior's weights never receive a gradient (they are not in the
 optimiser, and the map runs under ``no_grad``).
@@ -26,11 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from motok.control.generate import check_codebooks
+from motok.control.priors.generate import check_codebooks
 from motok.control.mdp.actions import residual_targets
-from motok.control.networks import ActorCritic, RunningNorm, ValueNet
-from motok.control.policies import MLPPolicy, MultiCategoricalPolicy
-from motok.control.priors import LatentPrior
+from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
+from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
+from motok.control.priors.model import LatentPrior
 from motok.errors import UserError
 
 

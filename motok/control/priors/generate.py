@@ -29,12 +29,12 @@ import numpy as np
 import torch
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.control import runner
-from motok.control.distill import load_prior
+from motok.control.rl import runner
+from motok.control.priors.distill import load_prior
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.resets import reference_state
-from motok.control.priors import LatentPrior
-from motok.control.rollout import as_tensor
+from motok.control.priors.model import LatentPrior
+from motok.control.rl.rollout import as_tensor
 from motok.control.track import simulated_clip
 from motok.data.dataset import MotionFile, write_motion
 from motok.errors import UserError

@@ -1,6 +1,6 @@
 """Evaluation of a distilled prior on the imitation task (``motok control eval --task imitation
 --prior PRIOR``; the paper's Fig. 4): the student's posterior reads the goal and its decoder acts,
-every clip from frame 0 with the most likely latent (``motok.control.evaluate``), optionally
+every clip from frame 0 with the most likely latent (``motok.control.tasks.imitation_eval``), optionally
 with only the first M codebooks of a residual prior."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from pathlib import Path
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
-from motok.control import runner
-from motok.control.dagger import StudentPolicy
-from motok.control.distill import load_prior
-from motok.control.evaluate import by_group, evaluate
+from motok.control.rl import runner
+from motok.control.priors.dagger import StudentPolicy
+from motok.control.priors.distill import load_prior
+from motok.control.tasks.imitation_eval import by_group, evaluate
 from motok.errors import UserError
 
 TASKS = ("imitation",)

@@ -3,12 +3,12 @@
 
 * ``r_im``, Eq. 10, the product form of ``motok.control.mdp.rewards`` (the imitation task's
   reward, ``motok.control.tasks.imitation``);
-* ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.amp``, a reward hook of the
+* ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.rl.amp``, a reward hook of the
   rollout collector.
 
 The trainer only composes parts: physics (``HumanoidEnv``), the imitation task, the action map
 (residual PD targets), the encoder-decoder policy, the collector and PPO; the runner
-(``motok.control.runner``) does the rest. Training saves a bundle (kind ``control-expert``)
+(``motok.control.rl.runner``) does the rest. Training saves a bundle (kind ``control-expert``)
 every ``save_every`` iterations with the MJCF (``RUN/humanoid.xml``) and its hash, the
 observation/action spec, the normaliser statistics, and everything needed to resume exactly:
 optimisers, replay buffer, torch/numpy/task RNG states.
@@ -29,16 +29,16 @@ from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
 from motok.checkpoint import register_kind
 from motok.config import from_dict
-from motok.control import runner
-from motok.control.amp import AMP, AMPConfig, AMPHook, reference_observations
-from motok.control.evaluate import by_group, eval_metrics, evaluate, subset, summarise
+from motok.control.rl import runner
+from motok.control.rl.amp import AMP, AMPConfig, AMPHook, reference_observations
+from motok.control.tasks.imitation_eval import by_group, eval_metrics, evaluate, subset, summarise
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.networks import ActorCritic, RunningNorm, ValueNet
-from motok.control.policies import EncoderDecoderPolicy
-from motok.control.ppo import PPO, PPOConfig
-from motok.control.rollout import Collector
-from motok.control.sampling import DifficultySampler, SamplingConfig, failures
-from motok.control.tasks.base import TaskEnv
+from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
+from motok.control.rl.policies import EncoderDecoderPolicy
+from motok.control.rl.ppo import PPO, PPOConfig
+from motok.control.rl.rollout import Collector
+from motok.control.rl.sampling import DifficultySampler, SamplingConfig, failures
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.data.dataset import select_clips
 from motok.distributed import Dist, gather

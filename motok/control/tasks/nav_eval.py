@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 
 from motok.control.mdp.navigation import planar_distance
-from motok.control.tasks.base import TaskEnv
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.navigation import NavigationTask
 from motok.errors import UserError
 

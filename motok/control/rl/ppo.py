@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from motok.control.networks import ActorCritic
+from motok.control.rl.networks import ActorCritic
 from motok.errors import UserError
 
 

@@ -21,10 +21,10 @@ import torch
 
 from motok.arrays import xp
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.networks import ActorCritic
-from motok.control.priors import LatentPrior, squared_norm
-from motok.control.rollout import Episodes, as_tensor
-from motok.control.tasks.base import TaskEnv
+from motok.control.rl.networks import ActorCritic
+from motok.control.priors.model import LatentPrior, squared_norm
+from motok.control.rl.rollout import Episodes, as_tensor
+from motok.control.mdp.task_env import TaskEnv
 from motok.quantize.base import code_stats
 
 
@@ -53,7 +53,7 @@ class DaggerBatch:
 
 
 class StudentPolicy:
-    """The student as :func:`motok.control.evaluate.evaluate` expects an actor-critic:
+    """The student as :func:`motok.control.tasks.imitation_eval.evaluate` expects an actor-critic:
     ``act(x_raw, deterministic) -> (xn, a, logp, v)`` (``logp`` and ``v`` are zeros). Evaluation
     runs the model in eval mode, so no codebook changes and, deterministic, no random draws;
     ``num_codebooks`` decodes with the first M codebooks only."""

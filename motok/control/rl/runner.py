@@ -31,7 +31,7 @@ from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.checkpoint import (CheckpointError, MetricsLog, load_bundle, rng_state, save_bundle, set_rng_state,
                               sha256_state)
 from motok.config import to_dict
-from motok.control.ppo import KL_WINDOW, kl_warning
+from motok.control.rl.ppo import KL_WINDOW, kl_warning
 from motok.distributed import Dist, gather, init_distributed, shutdown_distributed
 from motok.sim.humanoid import Humanoid
 

@@ -18,7 +18,7 @@ Per episode, over all its frames (the start state included), the errors of the f
 ``compute_metrics_lite`` (PHC's evaluation, all bodies): **MPJPE** (root-relative) and
 **G-MPJPE** (global) in mm, **velocity** (mm/frame) and **acceleration** (mm/frame^2) errors of
 the global body positions (first and second differences ending at each frame), with the helpers
-of ``motok.eval.metrics``. ``motok.control.evaluate`` reports the root's velocity and acceleration
+of ``motok.eval.metrics``. ``motok.control.tasks.imitation_eval`` reports the root's velocity and acceleration
 errors instead. In-betweening also reports them at the target keyframes only (``keyframe_*``: the
 frames of keyframes 2..K; the start keyframe is the initial state, which the fork's keyframe
 metrics include). HMD also reports the head's global error and the share of frames with the head
@@ -34,8 +34,8 @@ from typing import Callable
 
 import numpy as np
 
-from motok.control.nav_eval import episode_quota
-from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.nav_eval import episode_quota
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.hmd import HMDTask
 from motok.control.tasks.inbetween import InbetweenTask
 from motok.errors import UserError

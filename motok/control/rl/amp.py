@@ -25,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from motok.control.networks import mlp
-from motok.control.ppo import average_gradients, world_size
+from motok.control.rl.networks import mlp
+from motok.control.rl.ppo import average_gradients, world_size
 from motok.sim.obs import Bodies, observation
 
 

@@ -16,7 +16,7 @@ while a policy does its task, a ball (10 cm radius, 4.2 kg) is thrown at the cha
 * the task's own measures: episodes ended by truncation rather than termination (``success``,
   motok's usual meaning), the main reward per step, and for tasks that report
   ``target_ends``/``target_reached`` (navigation) the share of targets reached, counted as
-  :func:`motok.control.nav_eval.evaluate_navigation` counts them.
+  :func:`motok.control.tasks.nav_eval.evaluate_navigation` counts them.
 
 The MDP's humanoid must be a ball model (:func:`motok.sim.balls.build_ball_model`); its reference
 library can stay the plain humanoid's (same body, same humanoid state). The pool holds
@@ -32,8 +32,8 @@ from typing import Callable
 
 import numpy as np
 
-from motok.control.nav_eval import episode_quota
-from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.nav_eval import episode_quota
+from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 from motok.sim.balls import ball_states, detect_hits, find_balls, humanoid_capsules, launch_balls, park_balls, set_balls
 
@@ -252,8 +252,8 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
 
     from motok.artifacts import Provenance, command_line
     from motok.atomic import write_json
-    from motok.control import runner
-    from motok.control.task_train import load_task_run, policy_fn, task_mdp
+    from motok.control.rl import runner
+    from motok.control.highlevel.train import load_task_run, policy_fn, task_mdp
     from motok.sim.balls import build_ball_model
     from motok.sim.env import SimConfig
     from motok.sim.humanoid import load_humanoid

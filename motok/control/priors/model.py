@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from motok.control.networks import RunningNorm, mlp
+from motok.control.rl.networks import RunningNorm, mlp
 from motok.errors import UserError
 from motok.quantize.base import QuantizerConfig
 from motok.quantize.registry import build_quantizer
@@ -100,7 +100,7 @@ class LatentPrior(nn.Module):
     """Normaliser + posterior + prior + quantizer + decoder of one :data:`KINDS` entry.
 
     Inputs of :meth:`forward` are ``[s, s~]`` rows already normalised by :attr:`norm` (the
-    student's own :class:`~motok.control.networks.RunningNorm`, saved with the weights)."""
+    student's own :class:`~motok.control.rl.networks.RunningNorm`, saved with the weights)."""
 
     def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int):
         super().__init__()

@@ -12,7 +12,8 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from motok.control.expert.train import ExpertConfig, ExpertTrainer, imitation_mdp, train
+from motok.control.expert.model import ExpertConfig
+from motok.control.expert.train import ExpertTrainer, imitation_mdp, train
 from motok.control.mdp.actions import ActionConfig
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
 from motok.errors import UserError
@@ -158,7 +159,7 @@ def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(
     import signal
 
     from motok.control.rl import runner
-    from motok.control.expert.train import KIND
+    from motok.control.expert.model import KIND
 
     cfg = small_cfg(iterations=6, save_every=2)
     before = signal.getsignal(signal.SIGTERM)

@@ -12,8 +12,9 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from motok.control.priors.distill import load_prior
-from motok.control.priors.generate import check_codebooks, generate, rollout, sample_latent
+from motok.control.priors.model import load_prior
+from motok.control.priors.generate import generate, rollout, sample_latent
+from motok.control.priors.load import check_codebooks
 from motok.control.mdp.resets import reference_state
 from motok.control.priors.model import LatentPrior
 from motok.data.dataset import MotionFile

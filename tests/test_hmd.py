@@ -10,7 +10,7 @@ import pytest
 
 from motok.control.mdp.head import HeadRewardConfig, head_errors, head_goal, head_reward, rotation_angle
 from motok.control.mdp.resets import reference_bodies
-from motok.control.tasks.episodes import evaluate_hmd
+from motok.control.tasks.hmd import evaluate_hmd
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.hmd import HMDTask, HMDTaskConfig
 from motok.errors import UserError

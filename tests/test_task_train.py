@@ -14,12 +14,14 @@ import torch
 from typer.testing import CliRunner
 
 from motok.checkpoint import CheckpointError
-from motok.control.priors.distill import DistillConfig, load_prior
+from motok.control.priors.model import DistillConfig, load_prior
 from motok.control.highlevel.policy import HighLevelNetConfig, LatentActionMap, build_high_level
 from motok.control.mdp.resets import reference_state
 from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
 from motok.control.priors.model import LatentPrior
-from motok.control.highlevel.train import TaskTrainConfig, TaskTrainer, evaluate_run, load_task_run, train_from_prior
+from motok.control.highlevel.policy import TaskTrainConfig, load_task_run
+from motok.control.highlevel.evaluate import evaluate_run
+from motok.control.highlevel.train import TaskTrainer, train_from_prior
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.reference import load_library
@@ -246,7 +248,7 @@ def test_the_world_of_the_expert_is_the_world_of_its_prior_and_tasks(hum, walk_l
     """A PD-target filter an expert was trained through is its students' and their task policies'
     world: inherited when the recipe leaves it unset (and played so by the evaluations, which read
     the saved config), refused when the recipe sets another."""
-    from motok.control.priors.distill import DistillConfig, load_prior
+    from motok.control.priors.model import DistillConfig, load_prior
     from motok.control.priors.distill import train as distill
     from motok.errors import UserError
     prior = tiny_prior_bundle(tmp_path, hum, walk_lib, small_dataset, target_filter=0.5)
@@ -290,7 +292,7 @@ def test_in_betweening_is_evaluated_on_the_clips_of_another_split(tiny_prior, sm
 def test_the_command_line_knows_every_task():
     from motok.cli.priors import EVAL_TASKS
     from motok.control.tasks import registry
-    assert set(EVAL_TASKS) == {"imitation", *registry.TASKS}
+    assert set(EVAL_TASKS) == {"imitation", *registry.names()}
 
 
 def test_updates_that_leave_the_trust_region_are_reported_once(hum, walk_lib, small_dataset, tmp_path, capsys,

@@ -49,9 +49,9 @@ def tiny_prior_bundle(root, hum, lib, data, kind: str = "hybrid", target_filter:
     """A ``kind`` prior (4 codebooks of 16 codes when residual), distilled for 2 iterations from a
     1-iteration expert (trained through ``target_filter``): untrained, but a real bundle with every
     part its readers need. Returns the prior's folder (``root/prior``; the expert is ``root/expert``)."""
-    from motok.control.priors.distill import DistillConfig
+    from motok.control.priors.model import DistillConfig
     from motok.control.priors.distill import train as distill
-    from motok.control.expert.train import ExpertConfig
+    from motok.control.expert.model import ExpertConfig
     from motok.control.expert.train import train as train_expert
 
     ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)

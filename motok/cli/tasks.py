@@ -13,8 +13,9 @@ import typer
 from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, output_option,
                               recipe_option, report, run)
 from motok.cli.conventions import examples
+from motok.control.tasks import registry
 
-TASK_NAMES = "navigation | inbetween | hmd"
+TASK_NAMES = " | ".join(registry.names())
 
 
 def train_cmd(
@@ -37,7 +38,8 @@ def train_cmd(
 ):
     """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
     from motok.config import load_config
-    from motok.control.highlevel.train import TaskTrainConfig, train_from_prior
+    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.train import train_from_prior
 
     cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,

@@ -182,9 +182,9 @@ def build_library(hum: Humanoid, data_path, control_hz: float | None = None, cli
         for i in idx:
             joints = np.asarray(mf.frames("joints", i), dtype=np.float64)
             qpos = clip_qpos(joints, hum, mf.fps, hz)
+            res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
             qvel = _qvel(hum.model, qpos, 1.0 / hz)
             st = body_states(hum, qpos, qvel)
-            res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
             for k, v in dict(qpos=qpos, qvel=qvel, joints=to_mj(res), **st).items():
                 parts[k].append(v)
             names.append(mf.names[i])

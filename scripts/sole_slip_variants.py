@@ -1,4 +1,4 @@
-"""Sole slip of one controller under changes to its world, zero-shot (docs/results.md, issue 17).
+"""Sole slip of one controller under changes to its world, zero-shot (docs/results.md).
 
 Each variant edits the loaded MuJoCo model in memory (the run's MJCF stays as it is) and tracks the
 same clips with ``motok.control.track``; a row per variant: tracked to the end, MPJPE, and the sole

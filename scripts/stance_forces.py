@@ -1,4 +1,4 @@
-"""Contact forces under the sliding soles of one controller (docs/results.md, issue 17).
+"""Contact forces under the sliding soles of one controller (docs/results.md).
 
 ``motok.sim.soles`` finds the simulated soles sliding (about 60 cm/s while within 1 cm of the
 floor). That measure judges contact by height; this one asks MuJoCo. The clips are played as

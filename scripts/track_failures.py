@@ -1,4 +1,4 @@
-"""Which motions a tracking fails on, and how (docs/results.md, issue 17).
+"""Which motions a tracking fails on, and how (docs/results.md).
 
 Reads the ``.track.json`` reports that ``motok control track`` wrote for the real split and for
 GPT samples of it (``motok eval t2m --save-generated``), groups every clip by the ``content``

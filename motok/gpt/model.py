@@ -15,7 +15,7 @@ Residual-VQ tokenizers: the model predicts the first codebook only (one token pe
 motion is decoded from that codebook alone (``M = 1``), which quantizer dropout trained the
 tokenizer to do. docs/gpt.md discusses it.
 
-Token-level conditioning (``text_tokens: P``, issue 18): instead of one pooled sentence vector,
+Token-level conditioning (``text_tokens: P``): instead of one pooled sentence vector,
 the encoder's per-token outputs (padded or cut to P, a ``*_tokens`` text encoder) take positions
 0..P-1, each projected by ``W_c``, and the causal self-attention reads them as a prefix (the
 prefix-LM form of conditioning; cross-attention is the other). The output at position P - 1
@@ -53,7 +53,7 @@ class GPTConfig:
     block_size: int = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
     ff_mult: int = 4
     dropout: float = 0.1
-    # Token-level conditioning (issue 18): 0 = one pooled sentence vector at position 0 (the paper);
+    # Token-level conditioning: 0 = one pooled sentence vector at position 0 (the paper);
     # P > 0 = the encoder's P per-token outputs as a prefix of P positions (a ``*_tokens`` encoder).
     text_tokens: int = 0
 

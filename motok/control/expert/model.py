@@ -25,33 +25,33 @@ register_kind(KIND, (1,))
 
 @dataclass
 class NetConfig:
-    latent_dim: int = 64
-    encoder: list[int] = field(default_factory=lambda: [512, 256])
-    decoder: list[int] = field(default_factory=lambda: [512, 256])
-    value: list[int] = field(default_factory=lambda: [512, 256])
-    activation: str = "elu"
-    log_std: float = -1.6
-    learn_log_std: bool = False
+    latent_dim: int = 64  # the encoder's latent z (no bottleneck: a plain vector)
+    encoder: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of E(s, s~) -> z
+    decoder: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of D(s, z) -> a
+    value: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of the critic
+    activation: str = "elu"  # relu | elu | tanh | silu
+    log_std: float = -1.6  # the Gaussian's state-independent log std (rad)
+    learn_log_std: bool = False  # a parameter (learned) rather than a buffer (fixed, PHC's choice)
 
 
 @dataclass
 class ExpertConfig:
-    seed: int = 0
-    iterations: int = 1000
-    w_im: float = 0.5
-    w_style: float = 0.5
-    save_every: int = 50
+    seed: int = 0  # networks, task draws, minibatches
+    iterations: int = 1000  # PPO iterations (each: ppo.horizon steps of every environment, then the updates)
+    w_im: float = 0.5  # weight of the imitation reward r_im (Eq. 10)
+    w_style: float = 0.5  # weight of AMP's style reward r_style (Eq. 11); 0 also turns AMP off
+    save_every: int = 50  # iterations between checkpoints (every one resumes exactly)
     eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
     eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every training clip)
     torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
     update_threads: int = 0  # during the PPO and discriminator updates (0: torch_threads)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
-    task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)
-    action: ActionConfig = field(default_factory=ActionConfig)
-    ppo: PPOConfig = field(default_factory=PPOConfig)
-    net: NetConfig = field(default_factory=NetConfig)
-    amp: AMPConfig = field(default_factory=AMPConfig)
-    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)  # the imitation task
+    action: ActionConfig = field(default_factory=ActionConfig)  # the action map (residual PD targets)
+    ppo: PPOConfig = field(default_factory=PPOConfig)  # the PPO update
+    net: NetConfig = field(default_factory=NetConfig)  # the encoder-decoder policy and critic
+    amp: AMPConfig = field(default_factory=AMPConfig)  # the style discriminator
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)  # difficulty-weighted start clips
 
 
 def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:

@@ -49,9 +49,9 @@ register_kind(KIND, (1,))
 
 @dataclass
 class HighLevelNetConfig:
-    policy: list[int] = field(default_factory=lambda: [256, 256])
-    value: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "elu"
+    policy: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of the high-level policy's MLP
+    value: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of the critic's MLP
+    activation: str = "elu"  # relu | elu | tanh | silu
     std: float = 0.2  # continuous prior: exploration std of the offset u (fixed, as in the paper)
 
 
@@ -117,8 +117,8 @@ def paper_ppo() -> PPOConfig:
 
 @dataclass
 class TaskTrainConfig:
-    seed: int = 0
-    iterations: int = 2000
+    seed: int = 0  # networks, task draws and minibatches
+    iterations: int = 2000  # PPO iterations (each: ppo.horizon steps of every environment, then the update)
     task: str = "navigation"  # one of motok.control.tasks.registry.names()
     codebooks: int | None = None  # active codebooks M of a residual prior (None: all)
     save_every: int = 50
@@ -128,9 +128,9 @@ class TaskTrainConfig:
     torch_threads: int = 1  # during rollouts: MuJoCo has the cores
     update_threads: int = 0  # during the PPO update (0: torch_threads)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
-    tasks: registry.TaskConfigs = field(default_factory=registry.TaskConfigs)
-    ppo: PPOConfig = field(default_factory=paper_ppo)
-    net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)
+    tasks: registry.TaskConfigs = field(default_factory=registry.TaskConfigs)  # every task's settings: tasks.NAME.FIELD
+    ppo: PPOConfig = field(default_factory=paper_ppo)  # the update (Tables 6-8's values by default)
+    net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)  # the high-level policy and critic
 
     def check(self) -> None:
         registry.check(self.task)

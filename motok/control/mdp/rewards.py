@@ -27,10 +27,10 @@ def check_non_negative(cfg, label: str) -> None:
 
 @dataclass
 class ImitationConfig:
-    k_root: float = 10.0
-    k_q: float = 2.0
-    k_alpha: float = 0.5
-    k_ee: float = 40.0
+    k_root: float = 10.0  # Eq. 10's factor exp(-k_root e_root), e_root the root position error (m^2)
+    k_q: float = 2.0  # exp(-k_q e_q), e_q the hinge angle error (rad^2)
+    k_alpha: float = 0.5  # exp(-k_alpha e_alpha), e_alpha the body rotation error
+    k_ee: float = 40.0  # exp(-k_ee e_ee), e_ee the root-relative end-effector position error (m^2)
 
 
 def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict:

@@ -56,10 +56,10 @@ register_kind(KIND, (1,))
 class PriorConfig:
     kind: str = ""  # one of KINDS; `motok control distill --prior` sets it
     latent_dim: int = 64
-    posterior_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    prior_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "elu"
+    posterior_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_phi(s, s~) -> z
+    prior_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_theta(s) -> z_p
+    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of pi_low(s, z_bar) -> a
+    activation: str = "elu"  # relu | elu | tanh | silu
     log_std_min: float = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
     log_std_max: float = 1.0
     num_codebooks: int = 8  # discrete+ and hybrid: residual codebooks
@@ -227,8 +227,8 @@ class LatentPrior(nn.Module):
 
 @dataclass
 class WeightSchedule:
-    start: float = 0.0
-    end: float = 0.0
+    start: float = 0.0  # the weight at iteration 0
+    end: float = 0.0  # the weight once the ramp is over
     ramp: float = 0.125  # share of the iterations over which the weight moves linearly from start to end
 
     def at(self, iteration: int, total: int) -> float:
@@ -247,9 +247,9 @@ class LossConfig:
 
 @dataclass
 class DistillConfig:
-    seed: int = 0
-    iterations: int = 3000
-    save_every: int = 50
+    seed: int = 0  # the student's weights, task draws, minibatches
+    iterations: int = 3000  # DAgger iterations (each: horizon steps of every environment, then epochs of Eq. 6)
+    save_every: int = 50  # iterations between checkpoints (every one resumes exactly)
     eval_every: int = 0  # iterations between imitation evaluations of the student, logged as eval_*
     eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every clip)
     eval_batch: int = 256
@@ -262,10 +262,12 @@ class DistillConfig:
     max_grad_norm: float = 1.0
     action_noise: float = 0.055  # std of the noise on the student's actions while collecting (rad)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
+    # the imitation task; goal_frames must be the expert's
     task: ImitationTaskConfig = field(default_factory=lambda: ImitationTaskConfig(termination="mean"))
+    # the student's action map: residual on the current pose
     action: ActionConfig = field(default_factory=lambda: ActionConfig("current"))
-    prior: PriorConfig = field(default_factory=PriorConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)  # the prior's kind and sizes
+    loss: LossConfig = field(default_factory=LossConfig)  # Eq. 6's weights
 
 
 def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:

@@ -36,11 +36,11 @@ from motok.sim.reference import ReferenceLibrary
 
 @dataclass
 class HMDTaskConfig:
-    episode_seconds: float = 5.0
+    episode_seconds: float = 5.0  # an episode's length (a head trajectory)
     goal_frames: int = 5  # reference head frames ahead in the goal (the fork's numNextObsSteps)
     termination_distance: float = 1.0  # m, head to reference head (paper C.2; the fork's recipe: 1.5)
     early_termination: bool = True
-    reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)
+    reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)  # the head reward's weights and exponents
 
     def __post_init__(self):
         if not self.episode_seconds > 0:

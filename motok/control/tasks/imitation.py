@@ -44,12 +44,12 @@ from motok.sim.soles import SlipSums, Soles, reference_corners, slip_sums
 
 @dataclass
 class ImitationTaskConfig:
-    max_episode_seconds: float = 10.0
+    max_episode_seconds: float = 10.0  # time limit of an episode (a clip's end comes first when sooner)
     goal_frames: int = 1  # K reference frames ahead in the goal (Eq. 9)
     termination: str = "any"  # "any" body beyond the distance, or the "mean" over bodies (PHC's failure test)
     termination_distance: float = 0.5  # m, from the reference
     early_termination: bool = True
-    reward: ImitationConfig = field(default_factory=ImitationConfig)
+    reward: ImitationConfig = field(default_factory=ImitationConfig)  # Eq. 10's exponents
 
     def __post_init__(self):
         if self.termination not in MODES:

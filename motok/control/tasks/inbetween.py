@@ -53,7 +53,7 @@ TIME_ENCODINGS = ("add", "concat", "none")
 
 @dataclass
 class InbetweenTaskConfig:
-    window_seconds: float = 4.0
+    window_seconds: float = 4.0  # a window's length; its last frame is the last keyframe
     num_keyframes: int = 4  # per window, the start and the window's last frame included (C.1, training)
     eval_keyframes: int = 5  # per window in evaluation (Table 2)
     min_keyframe_gap_seconds: float = 0.5  # the fork's 15 frames at 30 Hz
@@ -63,7 +63,7 @@ class InbetweenTaskConfig:
     termination: str = "mean"  # body distance test: "mean" over bodies or "any" body
     termination_distance: float = 0.5  # m, from the reference
     early_termination: bool = True
-    reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)
+    reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)  # Eq. 14's weights and exponents
 
     def __post_init__(self):
         if not self.window_seconds > 0:

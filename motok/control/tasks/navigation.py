@@ -44,7 +44,7 @@ from motok.sim.reference import ReferenceLibrary
 
 @dataclass
 class NavigationTaskConfig:
-    episode_seconds: float = 8.0
+    episode_seconds: float = 8.0  # an episode's length (two targets)
     retarget_seconds: float = 4.0  # a new target this often (120 control steps at 30 Hz)
     min_distance: float = 5.0  # m, new targets from the root
     max_distance: float = 10.0
@@ -52,7 +52,7 @@ class NavigationTaskConfig:
     reach_radius: float = 0.5  # m: the velocity term is 1 within it; "reached" for evaluation
     k_pos: float = 0.5  # exp(-k_pos d^2)
     w_pos: float = 0.7
-    w_vel: float = 0.3
+    w_vel: float = 0.3  # weight of the velocity term
     fall_height: float = 0.5  # m, head height
     early_termination: bool = True
     head_body: str | None = None  # the body tested for falls; None: the skeleton's head joint

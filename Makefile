@@ -52,7 +52,7 @@ demo: install
 # make demo-physics: six walk clips of set 2 -> a short PPO expert -> a briefly distilled hybrid
 # prior -> "a person walks forward" from a GPT, tracked by the prior (`gpt sample --physics`) ->
 # a short navigation policy over the frozen prior, evaluated and rendered. Toy budgets: the expert
-# does not walk yet (docs/control.md: 80 % of the walks after 22 min), so the character mostly
+# does not walk yet (docs/control/expert.md: 80 % of the walks after 22 min), so the character mostly
 # falls; the demo shows every stage and file, not results. The GPT is `make demo`'s when
 # runs/demo/gpt exists, else a small tokenizer and GPT trained here on the six clips. The updates
 # run on one torch thread: beside another job two threads spin against it (a PPO update measured

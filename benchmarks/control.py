@@ -31,7 +31,8 @@ import mujoco
 from mujoco import rollout
 
 from motok.config import load_config
-from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp
+from motok.control.expert.model import ExpertConfig
+from motok.control.expert.train import ExpertTrainer, imitation_mdp
 from motok.data.dataset import select_clips
 from motok.sim.humanoid import HumanoidConfig, load_humanoid
 from motok.sim.mjcf import humanoid_xml, measure_humanoid

@@ -25,7 +25,8 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp
+from motok.control.expert.model import ExpertConfig
+from motok.control.expert.train import ExpertTrainer, imitation_mdp
 from motok.control.mdp.actions import ActionConfig
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.data.dataset import select_clips

@@ -26,8 +26,10 @@ import numpy as np
 import torch
 
 from motok.config import load_config
-from motok.control.distill import DistillConfig, DistillTrainer
-from motok.control.expert import imitation_mdp, load_expert
+from motok.control.priors.distill import DistillTrainer
+from motok.control.priors.model import DistillConfig
+from motok.control.expert.model import load_expert
+from motok.control.expert.train import imitation_mdp
 from motok.data.dataset import select_clips
 from motok.sim.reference import load_library
 from tasks import steps_per_s  # benchmarks/tasks.py, beside this file

@@ -16,7 +16,7 @@ then steps exactly those (state, control) pairs with ``mujoco.rollout`` for one 
   (mean, max, % of steps at the cap), and the candidate geom pairs a GPU (MuJoCo Warp NXN)
   broadphase would test;
 * quality: the rest pose under PD targets 0 after 5 s (standing?, root height ratio); plain PD
-  tracking from frame 0 (``motok.control.baselines.pd_track``: mean survival s and Eq. 10
+  tracking from frame 0 (``motok.control.expert.baselines.pd_track``: mean survival s and Eq. 10
   reward) of the 24 walk_normal clips and of the 42 others; divergence from today's physics: mean
   body-position difference (mm, legs + root / arms) after 10 and 30 control steps of PD tracking
   from 128 random reference states.
@@ -40,8 +40,8 @@ import numpy as np
 import mujoco
 from mujoco import rollout
 
-from motok.control.baselines import pd_track
-from motok.control.expert import imitation_mdp
+from motok.control.expert.baselines import pd_track
+from motok.control.expert.train import imitation_mdp
 from motok.control.mdp.actions import ActionConfig
 from motok.control.mdp.resets import reference_state
 from motok.control.tasks.imitation import ImitationTaskConfig

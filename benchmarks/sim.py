@@ -35,9 +35,9 @@ import numpy as np
 import mujoco
 from mujoco import rollout
 
-from motok.control.expert import imitation_mdp
+from motok.control.expert.train import imitation_mdp
 from motok.control.mdp.actions import ActionConfig
-from motok.control.tasks.base import TaskEnv
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.sim.env import SimConfig
 from motok.sim.humanoid import load_humanoid

@@ -26,11 +26,12 @@ import numpy as np
 import torch
 
 from motok.config import load_config
-from motok.control.distill import DistillConfig, load_prior
+from motok.control.priors.model import DistillConfig, load_prior
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.priors import LatentPrior
-from motok.control.task_train import TaskTrainConfig, TaskTrainer, task_mdp
-from motok.control.tasks.base import TaskEnv
+from motok.control.priors.model import LatentPrior
+from motok.control.highlevel.policy import TaskTrainConfig, task_mdp
+from motok.control.highlevel.train import TaskTrainer
+from motok.control.mdp.task_env import TaskEnv
 from motok.data.dataset import select_clips
 from motok.sim.reference import humanoid_for, load_library
 

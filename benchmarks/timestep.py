@@ -2,7 +2,7 @@
 what it does to tracking, measured side by side in one run.
 
 A trained expert (``RUN``, trained at the humanoid's timestep, 1/120 s by default: 4 substeps per
-30 Hz control step) plays the chosen clips from frame 0 (``motok.control.evaluate``) on the same
+30 Hz control step) plays the chosen clips from frame 0 (``motok.control.tasks.imitation``) on the same
 humanoid rebuilt with each timestep; only the integration step changes (gains, contacts,
 solver and the policy stay). Per timestep: substeps per control step, control steps per second
 of the imitation MDP (its ratio to the trained timestep's), success (played to the end, the run's
@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.control.evaluate import evaluate
-from motok.control.expert import imitation_mdp, load_expert
+from motok.control.tasks.imitation import evaluate
+from motok.control.expert.model import load_expert
+from motok.control.expert.train import imitation_mdp
 from motok.data.dataset import select_clips
 from motok.sim.humanoid import HumanoidConfig, load_humanoid
 from motok.sim.mjcf import humanoid_xml, measure_humanoid

@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from motok.control.track import load_controller, track
+from motok.control.priors.load import load_controller
+from motok.control.track import track
 from motok.data.dataset import select_clips
 from motok.sim.env import HumanoidEnv
 from motok.sim.reference import load_library
@@ -62,7 +63,7 @@ def main():
         a.prior = "runs/prior_hybrid"
     torch.set_num_threads(1)
     controller = load_controller(a.expert, a.prior)
-    cfg, hum = controller[0], controller[1]
+    cfg, hum = controller.cfg, controller.humanoid
     names = select_clips(a.data, a.clips, a.split)
     hz = float(cfg.env.control_hz or hum.control_hz)
     lib = load_library(hum, a.data, control_hz=hz, clips=names, use_cache=False)

@@ -11,14 +11,16 @@ import math
 
 import torch
 
-from motok.control import runner, task_train
+from motok.control import runs
+from motok.control.highlevel.evaluate import evaluate_policy
+from motok.control.highlevel.policy import load_task_run
 
 
 def codebook_entropy(run, episodes: int) -> tuple[list[float], float]:
-    cfg, hum, ac, model, scale, meta = task_train.load_task_run(run)
+    cfg, hum, ac, model, scale, meta = load_task_run(run)
     if not hasattr(ac.policy, "heads"):
         raise SystemExit(f"{run}: a continuous policy has no codebooks")
-    _, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, None, None, None)
+    _, lib = runs.run_library(run, meta, hum, cfg.env.control_hz, None, None, None)
     seen, log_probs = [], ac.policy.log_probs
 
     def recorded(x):  # every action the evaluation draws goes through here
@@ -28,7 +30,7 @@ def codebook_entropy(run, episodes: int) -> tuple[list[float], float]:
 
     ac.policy.log_probs = recorded
     cfg.env.num_envs = min(cfg.env.num_envs, episodes)
-    task_train.evaluate_policy(cfg, hum, lib, model, scale, ac, episodes, 0)
+    evaluate_policy(cfg, hum, lib, model, scale, ac, episodes, 0)
     return torch.cat(seen).mean(0).tolist(), math.log(ac.policy.classes)
 
 

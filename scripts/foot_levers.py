@@ -98,8 +98,8 @@ class ZeroPolicy:
 
 def pd_feet(name: str, a, motok: list[str]) -> dict:
     from motok.config import load_config
-    from motok.control.evaluate import evaluate, subset
-    from motok.control.expert import ExpertConfig
+    from motok.control.tasks.imitation import evaluate, subset
+    from motok.control.expert.model import ExpertConfig
     from motok.data.dataset import select_clips
     from motok.sim.humanoid import load_humanoid
     from motok.sim.reference import humanoid_for, load_library

@@ -4,10 +4,10 @@ there is read from an output file, not copied by hand:
     .venv/bin/python scripts/physics_tables.py [--runs runs]    # prints the tables that have data
     .venv/bin/python scripts/physics_tables.py --status         # where every run of the queue stands
 
-Priors (issue 15): the imitation table (Fig. 4: train and test clips from frame 0), code usage,
+Priors: the imitation table (Fig. 4: train and test clips from frame 0), code usage,
 samples/s and wall time; Table 1 (motion matching); the paper's orderings, each said to hold or
-not. Tasks (issue 16): navigation, thrown balls, in-betweening and head tracking (Tables 2-3).
-Text to physics (issue 17): the t2m rows.
+not. Tasks: navigation, thrown balls, in-betweening and head tracking (Tables 2-3).
+Text to physics: the t2m rows.
 """
 
 from __future__ import annotations
@@ -109,7 +109,7 @@ def table1(R: Path) -> str:
 
 
 def orderings(R: Path) -> str:
-    """The paper's orderings that issues 15 and 16 ask about, each read from the outputs and said to hold or
+    """The paper's orderings the priors' and tasks' results are about, each read from the outputs and said to hold or
     not by a strict comparison; whether a difference is beyond noise (a few points on 427 test clips
     are not) is for the discussion in docs/results.md."""
     rep = load(R / "table1" / "table1.json")
@@ -141,7 +141,7 @@ def orderings(R: Path) -> str:
                        ("hybrid", "continuous", "hybrid vs continuous (Fig. 4)")):
         claim(f"{what}: {a} above {b}, test clips played to the end", im(a), im(b), "success_rate", True, pct)
         claim(f"{what}: {a} below {b}, test MPJPE", im(a), im(b), "mpjpe_mm", False, "{:.1f} mm".format)
-    # issue 16: the hybrid prior best for task learning (section 6.3); navigation reaches few targets
+    # the hybrid prior best for task learning (section 6.3); navigation reaches few targets
     # on this protocol (docs/results.md), so the share of the distance closed is the comparison. The
     # continuous prior at lr 5e-5 is the comparison at matched update sizes (its policy at the recipes'
     # 3e-4 leaves PPO's trust region); its 3e-4 run stays as what the mismatch costs.

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.control.track import load_controller, track
+from motok.control.priors.load import load_controller
+from motok.control.track import track
 from motok.sim import steppers
 
 ROLLOUT = steppers.RolloutStepper
@@ -50,7 +51,7 @@ class RampStepper(steppers.RolloutStepper):
 
 
 def apply(ctl, variant: str) -> None:
-    cfg, model = ctl[0], ctl[1].model
+    cfg, model = ctl.cfg, ctl.humanoid.model
     if variant == "base":
         return
     if variant in ("ramp", "rollout"):

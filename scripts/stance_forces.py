@@ -2,7 +2,7 @@
 
 ``motok.sim.soles`` finds the simulated soles sliding (about 60 cm/s while within 1 cm of the
 floor). That measure judges contact by height; this one asks MuJoCo. The clips are played as
-``control track`` plays them (``motok.control.evaluate.play``, the rollout stepper, which starts
+``control track`` plays them (``motok.control.tasks.imitation.play``, the rollout stepper, which starts
 every control step from a zero warm start), every control step's state and PD targets are
 recorded, and each step is replayed substep by substep in one ``MjData``; at every substep each
 contact between a foot or toe geom and the floor gives its normal force, its friction force and
@@ -29,8 +29,9 @@ from dataclasses import replace
 import mujoco
 import numpy as np
 
-from motok.control.evaluate import play
-from motok.control.track import load_controller, place_on_floor
+from motok.control.tasks.imitation import play
+from motok.control.priors.load import load_controller
+from motok.control.track import place_on_floor
 from motok.data.dataset import select_clips
 from motok.sim.reference import load_library
 from motok.sim.soles import BOX, contact_runs, floor_contacts
@@ -67,14 +68,14 @@ def main() -> None:
     ap.add_argument("--world", default="base", help="a change to the world, zero-shot (scripts/sole_slip_variants.py)")
     a = ap.parse_args()
     ctl = load_controller(expert=a.expert, prior=a.prior)
-    cfg, hum, ac, _ = ctl
+    cfg, hum, ac = ctl.cfg, ctl.humanoid, ctl.policy
     apply(ctl, a.world)
     names = select_clips(a.data, a.clips, a.split)[:a.max_clips]
     lib, _ = place_on_floor(load_library(hum, a.data, control_hz=hum.control_hz, clips=names, use_cache=False))
     sim = replace(cfg.env, stepper="rollout", nthread=1)
     task = replace(cfg.task, max_episode_seconds=1e9)
 
-    import motok.control.evaluate as ev
+    import motok.control.tasks.imitation as ev
     made = []
     real = ev.HumanoidEnv
 
@@ -90,7 +91,7 @@ def main() -> None:
     finally:
         ev.HumanoidEnv = real
     if not made:
-        raise SystemExit("play() no longer builds its environment through motok.control.evaluate.HumanoidEnv: "
+        raise SystemExit("play() no longer builds its environment through motok.control.tasks.imitation.HumanoidEnv: "
                          "nothing was recorded; update this script")
     env = made[0]
     m = hum.model

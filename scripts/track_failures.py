@@ -63,13 +63,13 @@ def summary(report: dict, content: dict[str, str]) -> dict[str, dict]:
     return out
 
 
-def how_they_failed(controller: tuple, motion: str, names: list[str]) -> dict:
-    """The failed clips played again by ``controller`` (``motok.control.track.load_controller``'s
-    tuple): head height and planar root distance at the last step, and the seconds played."""
-    from motok.control.evaluate import play
+def how_they_failed(controller, motion: str, names: list[str]) -> dict:
+    """The failed clips played again by ``controller`` (a ``motok.control.priors.load.Controller``):
+    head height and planar root distance at the last step, and the seconds played."""
+    from motok.control.tasks.imitation import play
     from motok.control.track import place_on_floor
     from motok.sim.reference import load_library
-    cfg, hum, policy, _ = controller
+    cfg, hum, policy = controller.cfg, controller.humanoid, controller.policy
     hz = float(cfg.env.control_hz or hum.control_hz)
     lib, _ = place_on_floor(load_library(hum, motion, control_hz=hz, clips=names, use_cache=False))
     ids = np.arange(len(lib))
@@ -107,7 +107,7 @@ def main():
     if args.replay:
         if not args.prior:
             ap.error("--replay needs --prior")
-        from motok.control.track import load_controller
+        from motok.control.priors.load import load_controller
         controller = load_controller(prior=args.prior)
         path, rep, s = sums[0]
         print(f"\nAt the failure ({path}; up to {args.replay} failed clips per group, played again):")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.tasks.base import TaskEnv
+from motok.control.mdp.task_env import TaskEnv
 from motok.sim.env import HumanoidEnv, SimConfig
 
 

@@ -1,4 +1,4 @@
-"""Thrown balls (motok.sim.balls) and the perturbation test (motok.control.perturb), hybrid-latent
+"""Thrown balls (motok.sim.balls) and the perturbation test (motok.control.highlevel.perturb), hybrid-latent
 paper section 6.3.3: the ball model, the humanoid's state as a prefix of it, launches, hits
 checked against MuJoCo's own contact list, the pool, and perturb()'s counts."""
 
@@ -9,8 +9,8 @@ import pytest
 
 import mujoco
 
-from motok.control.perturb import PerturbConfig, Windows, perturb
-from motok.control.tasks.base import TaskEnv
+from motok.control.highlevel.perturb import PerturbConfig, Windows, perturb
+from motok.control.mdp.task_env import Task, TaskEnv
 from motok.errors import UserError
 from motok.sim.balls import (ball_states, build_ball_model, detect_hits, find_balls, humanoid_capsules, launch_balls,
                              park_balls, segment_distance, set_balls)
@@ -38,7 +38,7 @@ def standing(env, ids=None):
     env.set_state(ids, np.tile(env.hum.model.qpos0[:env.nq], (len(ids), 1)), np.zeros((len(ids), env.nv)))
 
 
-class Stand:
+class Stand(Task):
     """A test task: stand (PD targets are the actions) from the rest pose; the head below 0.5 m
     terminates (when ``fall_ends``), ``seconds`` truncate."""
 
@@ -54,6 +54,9 @@ class Stand:
 
     def goal(self):
         return np.zeros((self.env.num_envs, 0))
+
+    def step_limit(self):
+        return self.limit
 
     def update(self, diverged, invalid):
         self.steps += 1

@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 import torch
 
-from motok.control.baselines import pd_track
+from motok.control.expert.baselines import pd_track
 from motok.control.mdp.actions import ActionConfig, pd_targets, reference_base
 from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
 from motok.control.mdp.terminations import tracking_failure
-from motok.control.networks import ActorCritic, RunningNorm, ValueNet
-from motok.control.policies import MultiCategoricalPolicy
-from motok.control.ppo import PPO, PPOConfig, Rollout
-from motok.control.tasks.base import TaskEnv
+from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
+from motok.control.rl.policies import MultiCategoricalPolicy
+from motok.control.rl.ppo import PPO, PPOConfig, Rollout
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.obs import Bodies, TreeKinematics, observation
@@ -303,7 +303,7 @@ def test_short_ppo_run_raises_the_return_of_a_discrete_task():
 
 def test_difficulty_probabilities_follow_the_formula_and_draw_failed_clips_more_often(lib):
     from motok.control.mdp.resets import sample_starts
-    from motok.control.sampling import DifficultySampler, SamplingConfig, clip_probabilities, failures
+    from motok.control.rl.sampling import DifficultySampler, SamplingConfig, clip_probabilities, failures
 
     usable = np.array([10.0, 30.0, 60.0])
     f = np.array([0.0, 1.0, 0.5])

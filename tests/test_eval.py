@@ -484,7 +484,7 @@ def test_recon_row_with_a_tiny_tokenizer(tiny_evaluator, labelled_dataset, tiny_
 
     from motok.data.dataset import MotionFile
     from motok.features.humanml3d import recover_from_ric
-    from motok.tokenizer.train import load_tokenizer
+    from motok.tokenizer.model import load_tokenizer
     model, _ = load_tokenizer(tiny_tokenizer)
     rel, glob, acc = [], [], []
     with MotionFile(labelled_dataset) as mf, torch.no_grad():

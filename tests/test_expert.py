@@ -1,4 +1,4 @@
-"""The physics expert (motok.control.expert): Eq. 10 product reward, learning on a trivial task,
+"""The physics expert (motok.control.expert.train): Eq. 10 product reward, learning on a trivial task,
 exact resume, and the `motok control expert` commands."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from motok.control.expert import ExpertConfig, ExpertTrainer, imitation_mdp, train
+from motok.control.expert.model import ExpertConfig
+from motok.control.expert.train import ExpertTrainer, imitation_mdp, train
 from motok.control.mdp.actions import ActionConfig
 from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitation_reward
 from motok.errors import UserError
@@ -160,8 +161,8 @@ def test_a_warm_start_begins_from_the_other_runs_weights_and_not_its_counters(hu
 def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(hum, walk_lib, tmp_path):
     import signal
 
-    from motok.control import runner
-    from motok.control.expert import KIND
+    from motok.control.rl import runner
+    from motok.control.expert.model import KIND
 
     cfg = small_cfg(iterations=6, save_every=2)
     before = signal.getsignal(signal.SIGTERM)
@@ -324,7 +325,7 @@ def test_control_recipes_load_with_their_measured_choices():
     for cfg in (paper, set2):  # whole-dataset recipes: difficulty sampling and a stratified eval subset
         assert cfg.sampling.hard_fraction == 0.5 and cfg.sampling.every > 0 and cfg.eval_per_group == 2
     assert small.sampling.hard_fraction == 0.0 and set2.update_threads == 2
-    # the same world but for the PD-target filter the whole-dataset recipe trains through (docs/control.md)
+    # the same world but for the PD-target filter the whole-dataset recipe trains through (docs/control/expert.md)
     assert set2.env.target_filter == 0.5 and replace(set2.env, target_filter=None) == small.env
     for cfg in (small, paper, set2):
         assert cfg.action.base == "reference" and cfg.task.termination == "mean" and cfg.eval_every > 0

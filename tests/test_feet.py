@@ -96,7 +96,7 @@ def test_foot_metrics_of_a_hand_made_slide_give_the_known_values(hum, lib):
     """A real standing frame slid along the floor at 0.3 m/s forward and 0.4 m/s sideways: every
     touching sole corner and the toes slip at exactly 50 cm/s; held still, 0; the reference beside
     it (held still) stays 0, so the rows cannot be swapped."""
-    from motok.control.evaluate import FEET, clip_feet, clip_slip, feet_report
+    from motok.control.tasks.imitation import FEET, clip_feet, clip_slip, feet_report
     from motok.sim.soles import reference_corners, soles
 
     f = lib.starts[0]
@@ -133,7 +133,7 @@ def test_the_foot_velocity_term_multiplies_eq10_by_its_factor(hum, lib):
 
     from motok.control.mdp.actions import ActionConfig, pd_targets
     from motok.control.mdp.rewards import ImitationConfig, feet_error, imitation_reward
-    from motok.control.tasks.base import TaskEnv
+    from motok.control.mdp.task_env import TaskEnv
     from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
     from motok.sim.env import HumanoidEnv, SimConfig
 

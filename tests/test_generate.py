@@ -1,4 +1,4 @@
-"""Unconditional generation from a distilled prior (motok.control.generate, `motok control
+"""Unconditional generation from a distilled prior (motok.control.priors.generate, `motok control
 generate`): uniform codes from the first M codebooks only, prior draws for the continuous kind, a
 motion artifact of the requested length and count that the other tools read, the same motion for
 the same seed."""
@@ -12,10 +12,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from motok.control.distill import load_prior
-from motok.control.generate import check_codebooks, generate, rollout, sample_latent
+from motok.control.priors.model import load_prior
+from motok.control.priors.generate import generate, rollout, sample_latent
+from motok.control.priors.load import check_codebooks
 from motok.control.mdp.resets import reference_state
-from motok.control.priors import LatentPrior
+from motok.control.priors.model import LatentPrior
 from motok.data.dataset import MotionFile
 from motok.errors import UserError
 from motok.sim.reference import load_library

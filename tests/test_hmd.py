@@ -10,8 +10,8 @@ import pytest
 
 from motok.control.mdp.head import HeadRewardConfig, head_errors, head_goal, head_reward, rotation_angle
 from motok.control.mdp.resets import reference_bodies
-from motok.control.task_eval import evaluate_hmd
-from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.hmd import evaluate_hmd
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.hmd import HMDTask, HMDTaskConfig
 from motok.errors import UserError
 from motok.rotations import qmul

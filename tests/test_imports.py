@@ -182,3 +182,27 @@ def test_folder_graph_joins_a_loop_through_two_files_of_one_folder(tmp_path):
     graph = import_graph(pkg)
     assert find_cycles(graph) == []  # no file loop: a -> b -> c
     assert [c for c, _ in find_cycles(folder_graph(graph))] == [["motok.high", "motok.low", "motok.high"]]
+
+
+TRAINERS = {"motok.control.rl.runner", "motok.control.priors.distill", "motok.control.priors.dagger"}
+INFERENCE = ("motok.gpt.sample", "motok.tokenizer.tokens", "motok.control.track", "motok.control.text_to_physics",
+             "motok.control.priors.load", "motok.control.priors.generate", "motok.control.priors.evaluate",
+             "motok.control.expert.evaluate", "motok.control.highlevel.evaluate")
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    seen, todo = set(), [start]
+    while todo:
+        for m in graph[todo.pop()] - seen:
+            seen.add(m)
+            todo.append(m)
+    return seen
+
+
+def test_sampling_tracking_and_evaluation_never_import_a_trainer():
+    """Loaders live beside their models, so reading a trained run never runs training code (a
+    trainer's imports, its registrations, its failure modes)."""
+    graph = import_graph()
+    trainers = TRAINERS | {m for m in graph if m.endswith(".train")}
+    found = {m: sorted(reachable(graph, m) & trainers) for m in INFERENCE}
+    assert not {m: t for m, t in found.items() if t}, found

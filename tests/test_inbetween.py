@@ -10,8 +10,9 @@ import pytest
 
 from motok.control.mdp.keyframes import (InbetweenRewardConfig, inbetween_errors, inbetween_reward, keyframe_goal,
                                          next_keyframe, sample_keyframes, time_encoding)
-from motok.control.task_eval import EpisodeErrors, evaluate_inbetween
-from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.episodes import EpisodeErrors
+from motok.control.tasks.inbetween import evaluate_inbetween
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
 from motok.errors import UserError
 from motok.sim.obs import Bodies

@@ -13,9 +13,9 @@ import pytest
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.navigation import head_fell, heading_frame_target, navigation_reward, sample_targets
 from motok.control.mdp.resets import reference_state
-from motok.control.nav_eval import (IDLE_SPEED, MIN_IDLE_SECONDS, episode_quota, evaluate_navigation, idle_matching,
-                                    stays)
-from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.episodes import episode_quota
+from motok.control.tasks.navigation import IDLE_SPEED, MIN_IDLE_SECONDS, evaluate_navigation, idle_matching, stays
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig
 from motok.errors import UserError
 from motok.rotations import quat_to_matrix

@@ -1,4 +1,4 @@
-"""PPO pieces (motok.control.ppo, networks) and the AMP discriminator (motok.control.amp)."""
+"""PPO pieces (motok.control.rl.ppo, networks) and the AMP discriminator (motok.control.rl.amp)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from motok.control.amp import AMP, AMPConfig, ReplayBuffer, gradient_penalty, style_reward
-from motok.control.networks import RunningNorm
-from motok.control.policies import EncoderDecoderPolicy
-from motok.control.ppo import PPOConfig, Rollout, gae, kl_warning, learning_rate, policy_loss, value_loss
+from motok.control.rl.amp import AMP, AMPConfig, ReplayBuffer, gradient_penalty, style_reward
+from motok.control.rl.networks import RunningNorm
+from motok.control.rl.policies import EncoderDecoderPolicy
+from motok.control.rl.ppo import PPOConfig, Rollout, gae, kl_warning, learning_rate, policy_loss, value_loss
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -173,9 +173,9 @@ def test_short_ppo_run_raises_the_return_of_a_stand_still_task():
 
 
 def _stand_still():
-    from motok.control.networks import ActorCritic, ValueNet
-    from motok.control.policies import MLPPolicy
-    from motok.control.ppo import PPO
+    from motok.control.rl.networks import ActorCritic, ValueNet
+    from motok.control.rl.policies import MLPPolicy
+    from motok.control.rl.ppo import PPO
 
     torch.manual_seed(0)
     N, T = 16, 40

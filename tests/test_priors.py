@@ -1,5 +1,5 @@
-"""The latent priors (motok.control.priors) and their online distillation (motok.control.distill,
-motok.control.dagger): where the gradients go, quantizer dropout and decoding from codes, the
+"""The latent priors (motok.control.priors.model) and their online distillation (motok.control.priors.distill,
+motok.control.priors.dagger): where the gradients go, quantizer dropout and decoding from codes, the
 Gaussian KL, the label conversion between action bases, learning, exact resume, the command."""
 
 from __future__ import annotations
@@ -16,13 +16,14 @@ import torch
 from safetensors.torch import load_file
 
 from motok.config import load_config
-from motok.control.dagger import expert_labels
-from motok.control.distill import (DistillConfig, DistillTrainer, WeightSchedule, distill_loss, expert_path,
-                                   latent_change, load_prior, train)
-from motok.control.expert import ExpertConfig, imitation_mdp, load_expert
-from motok.control.expert import train as train_expert
+from motok.control.priors.dagger import expert_labels
+from motok.control.priors.distill import DistillTrainer, distill_loss, expert_path, latent_change, train
+from motok.control.priors.model import DistillConfig, WeightSchedule, load_prior
+from motok.control.expert.model import ExpertConfig, load_expert
+from motok.control.expert.train import imitation_mdp
+from motok.control.expert.train import train as train_expert
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.priors import KINDS, LatentPrior, PriorConfig, gaussian_kl
+from motok.control.priors.model import KINDS, LatentPrior, PriorConfig, gaussian_kl
 from motok.sim.env import SimConfig
 from motok.sim.reference import load_library
 
@@ -321,7 +322,7 @@ def test_control_distill_command(small_dataset, tiny_expert, tmp_path, monkeypat
     assert res["kind"] == "control-prior-eval" and o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0
     assert all(v["seconds"] > 0 for v in res["clips"].values()) and res["checkpoint"]["codebooks"] == 1
     assert res["checkpoint"]["prior"]["kind"] == "hybrid" and o["g_mpjpe_mm"] > 0
-    for args, says in ((["--task", "steering"], "--task must be one of"), (["--codebooks", "3"], "--codebooks must be in 1..2")):
+    for args, says in ((["--task", "no-such-task"], "--task must be one of"), (["--codebooks", "3"], "--codebooks must be in 1..2")):
         r = CliRunner().invoke(app, [*ev, *args])
         assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, r.output
     # the distilled policy as the controller of `motok control track`

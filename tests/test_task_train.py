@@ -1,4 +1,4 @@
-"""Task learning over a frozen prior (motok.control.highlevel, motok.control.task_train, `motok
+"""Task learning over a frozen prior (motok.control.highlevel.policy, motok.control.highlevel.train, `motok
 control train` / `motok control eval --task T --run`): the action map decodes exactly what the
 prior would, PPO trains the high-level policy and nothing of the prior, it learns, training
 resumes exactly, and the bundle evaluates and renders."""
@@ -14,12 +14,14 @@ import torch
 from typer.testing import CliRunner
 
 from motok.checkpoint import CheckpointError
-from motok.control.distill import DistillConfig, load_prior
-from motok.control.highlevel import HighLevelNetConfig, LatentActionMap, build_high_level
+from motok.control.priors.model import DistillConfig, load_prior
+from motok.control.highlevel.policy import HighLevelNetConfig, LatentActionMap, build_high_level
 from motok.control.mdp.resets import reference_state
-from motok.control.policies import MLPPolicy, MultiCategoricalPolicy
-from motok.control.priors import LatentPrior
-from motok.control.task_train import TaskTrainConfig, TaskTrainer, evaluate_run, load_task_run, train_from_prior
+from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
+from motok.control.priors.model import LatentPrior
+from motok.control.highlevel.policy import TaskTrainConfig, load_task_run
+from motok.control.highlevel.evaluate import evaluate_run
+from motok.control.highlevel.train import TaskTrainer, train_from_prior
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.reference import load_library
@@ -231,11 +233,11 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path, 
     assert len(h) == 2 and top == pytest.approx(np.log(ac.policy.classes)) and all(0 <= x <= top + 1e-5 for x in h)
 
     # Thrown balls at the trained policy, zero-shot, on the run's humanoid with a pool of balls.
-    from motok.control.perturb import perturb_run
+    from motok.control.highlevel.perturb import perturb_run
     pr = perturb_run(tmp_path / "straight", episodes=2, render=tmp_path / "balls.gif")
     assert pr["launched"] >= 1 and 0 <= pr["hits"] <= pr["launched"] and pr["episodes"] == 2
     assert (tmp_path / "straight" / "perturb.json").exists() and (tmp_path / "balls.gif").stat().st_size > 0
-    from motok.control.perturb import PerturbConfig
+    from motok.control.highlevel.perturb import PerturbConfig
     before = (tmp_path / "straight" / "perturb.json").read_text()
     slow = perturb_run(tmp_path / "straight", episodes=1, cfg=PerturbConfig(period=0.6))
     assert slow["written"].endswith("perturb_period0.6.json") and slow["config"]["period"] == 0.6
@@ -246,8 +248,8 @@ def test_the_world_of_the_expert_is_the_world_of_its_prior_and_tasks(hum, walk_l
     """A PD-target filter an expert was trained through is its students' and their task policies'
     world: inherited when the recipe leaves it unset (and played so by the evaluations, which read
     the saved config), refused when the recipe sets another."""
-    from motok.control.distill import DistillConfig, load_prior
-    from motok.control.distill import train as distill
+    from motok.control.priors.model import DistillConfig, load_prior
+    from motok.control.priors.distill import train as distill
     from motok.errors import UserError
     prior = tiny_prior_bundle(tmp_path, hum, walk_lib, small_dataset, target_filter=0.5)
     assert load_prior(prior)[0].env.target_filter == 0.5
@@ -290,7 +292,7 @@ def test_in_betweening_is_evaluated_on_the_clips_of_another_split(tiny_prior, sm
 def test_the_command_line_knows_every_task():
     from motok.cli.priors import EVAL_TASKS
     from motok.control.tasks import registry
-    assert set(EVAL_TASKS) == {"imitation", *registry.TASKS}
+    assert set(EVAL_TASKS) == {"imitation", *registry.names()}
 
 
 def test_updates_that_leave_the_trust_region_are_reported_once(hum, walk_lib, small_dataset, tmp_path, capsys,
@@ -298,8 +300,8 @@ def test_updates_that_leave_the_trust_region_are_reported_once(hum, walk_lib, sm
     """The continuous prior's Gaussian at too large an lr moved nats of KL per update and diverged
     while the curves looked like training (docs/results.md); the run now says so, once, and a run
     whose updates stay small says nothing."""
-    from motok.control import runner
-    from motok.control.ppo import KL_WARN
+    from motok.control.rl import runner
+    from motok.control.rl.ppo import KL_WARN
 
     prior = tiny_prior_bundle(tmp_path, hum, walk_lib, small_dataset, kind="continuous")
     monkeypatch.setattr(runner, "KL_WINDOW", 3)

@@ -29,7 +29,8 @@ from motok.optim import OptimConfig, lr_factor
 from motok.quantize.base import QuantizerConfig
 from motok.tokenizer.model import VQVAE, LossConfig, ModelConfig, vqvae_loss
 from motok.tokenizer.tokens import TokenFile, decode, encode, evaluate, reconstruction_errors
-from motok.tokenizer.train import TokenizerError, TrainConfig, load_tokenizer, resolve_config, train
+from motok.tokenizer.model import load_tokenizer
+from motok.tokenizer.train import TokenizerError, TrainConfig, resolve_config, train
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPES = REPO / "recipes" / "tokenizer"

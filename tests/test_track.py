@@ -13,18 +13,20 @@ import torch
 from typer.testing import CliRunner
 
 from motok.artifacts import Provenance
-from motok.control.expert import ExpertConfig, build_actor_critic, imitation_mdp
-from motok.control.track import from_mj, place_on_floor, report_path, track
+from motok.control.expert.model import ExpertConfig, build_actor_critic
+from motok.control.expert.train import imitation_mdp
+from motok.control.priors.load import Controller
+from motok.control.track import place_on_floor, report_path, track
 from motok.data.dataset import MotionFile, write_motion
 from motok.eval.metrics import mpjpe
-from motok.sim.humanoid import to_mj
+from motok.sim.humanoid import from_mj, to_mj
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
 def pd_controller(hum, lib):
-    """(cfg, humanoid, actor-critic, meta) whose policy's mean action is 0 on the reference base."""
+    """A controller whose policy's mean action is 0 on the reference base."""
     cfg = ExpertConfig()
     cfg.action.base, cfg.task.termination, cfg.env.num_envs = "reference", "mean", 8
     cfg.net.encoder = cfg.net.decoder = cfg.net.value = [16]
@@ -33,7 +35,7 @@ def pd_controller(hum, lib):
     with torch.no_grad():
         ac.policy.decoder[-1].weight.zero_()
         ac.policy.decoder[-1].bias.zero_()
-    return cfg, hum, ac, {"kind": "control-expert", "model_sha256": "pd"}
+    return Controller(cfg, hum, ac, {"kind": "control-expert", "model_sha256": "pd"})
 
 
 def test_mj_and_data_frames_are_inverse():

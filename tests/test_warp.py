@@ -179,7 +179,7 @@ def test_the_on_device_path_steps_and_observes_without_the_host(hum, lib, warp):
 
 def device_pair(hum, lib, n, target_filter=1.0):
     """The imitation MDP of ``n`` environments on Warp twice: host arrays, and on the device."""
-    from motok.control.expert import imitation_mdp
+    from motok.control.expert.train import imitation_mdp
     from motok.control.mdp.actions import ActionConfig
     from motok.control.tasks.imitation import ImitationTaskConfig
 
@@ -244,7 +244,7 @@ def test_on_device_starts_are_drawn_on_the_device(hum, lib, warp):
 
 
 def device_expert_cfg(iterations: int = 4):
-    from motok.control.expert import ExpertConfig
+    from motok.control.expert.model import ExpertConfig
 
     cfg = ExpertConfig(seed=0, iterations=iterations, save_every=2)
     cfg.env.num_envs, cfg.env.nthread, cfg.env.backend, cfg.env.on_device = 4, 1, "warp", True
@@ -265,7 +265,7 @@ def metric_rows(run, keys):
 @pytest.fixture(scope="module")
 def device_expert(hum, lib, small_dataset, tmp_path_factory, warp):
     """An expert trained 4 iterations with env.on_device (PPO + AMP, difficulty sampling)."""
-    from motok.control.expert import train
+    from motok.control.expert.train import train
 
     run = tmp_path_factory.mktemp("device-expert") / "a"
     out = train(device_expert_cfg(), run, hum, lib, data=small_dataset)
@@ -278,7 +278,7 @@ def test_expert_trains_on_the_device_and_resumes_exactly(hum, lib, small_dataset
     transitions on the physics device (here Warp's CPU device); a run stopped at iteration 2 and
     resumed logs the same metrics as an uninterrupted one (the task's torch.Generator, the
     difficulty sampler and the replay buffer are saved with it)."""
-    from motok.control.expert import train
+    from motok.control.expert.train import train
 
     cfg = device_expert_cfg()
     train(cfg, tmp_path / "b", hum, lib, data=small_dataset, until=2)
@@ -294,8 +294,8 @@ def test_distillation_runs_on_the_device_and_resumes_exactly(hum, lib, tmp_path,
     """Online distillation (DAgger) of a hybrid prior with env.on_device: the student, the frozen
     expert, the batch and the expert's labels on the physics device; resumed exactly; the bundle
     loads on the host like any prior."""
-    from motok.control.distill import DistillConfig, load_prior, train
-    from motok.control.priors import PriorConfig
+    from motok.control.priors.distill import train
+    from motok.control.priors.model import DistillConfig, PriorConfig, load_prior
 
     cfg = DistillConfig(seed=0, iterations=4, save_every=2, horizon=8, epochs=2, minibatch_size=32, action_noise=0.05)
     cfg.env = replace(cfg.env, num_envs=4, nthread=1, backend="warp", on_device=True)
@@ -318,7 +318,7 @@ def host_and_device(hum, lib, task_cls, cfg, base: str, n: int = 3):
     from functools import partial
 
     from motok.control.mdp.actions import ActionConfig, pd_targets
-    from motok.control.tasks.base import TaskEnv
+    from motok.control.mdp.task_env import TaskEnv
 
     out = []
     for on in (False, True):
@@ -407,7 +407,8 @@ def test_task_learning_runs_on_the_device(hum, lib, small_dataset, tmp_path, war
     runs on host arrays."""
     from tiny_runs import tiny_prior_bundle
 
-    from motok.control.task_train import TaskTrainConfig, train
+    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.train import train
 
     prior = tiny_prior_bundle(tmp_path, hum, lib, small_dataset)
     cfg = TaskTrainConfig(seed=0, iterations=4, save_every=2, eval_every=4, eval_episodes=2)
@@ -444,7 +445,9 @@ def test_expert_trains_through_the_warp_backend(hum, lib, small_dataset, tmp_pat
     """Two PPO + AMP iterations of 4 environments on Warp's CPU device, then an evaluation through
     Warp: the recipe key reaches the stepper and is kept in the checkpoint, and a loaded run starts
     from C MuJoCo on the CPU whatever it was trained on (its evaluation's --device chooses)."""
-    from motok.control.expert import ExpertConfig, evaluate_run, train
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.evaluate import evaluate_run
+    from motok.control.expert.train import train
 
     cfg = ExpertConfig(seed=0, iterations=2, save_every=1000)
     cfg.env.num_envs, cfg.env.nthread, cfg.env.backend = 4, 1, "warp"
@@ -460,8 +463,8 @@ def test_expert_trains_through_the_warp_backend(hum, lib, small_dataset, tmp_pat
     assert meta["config"]["env"]["backend"] == "warp" and meta["config"]["env"]["device"] == "cpu"
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(r["r_im"]) and 0.0 < r["r_im"] <= 1.0 for r in rows)
-    from motok.control.evaluate import evaluate
-    from motok.control.expert import load_expert
+    from motok.control.tasks.imitation import evaluate
+    from motok.control.expert.model import load_expert
 
     loaded, _, ac, _ = load_expert(tmp_path / "run")
     assert (loaded.env.backend, loaded.env.device) == ("mujoco", "cpu")  # a loaded run: C MuJoCo unless told

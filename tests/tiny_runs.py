@@ -39,7 +39,7 @@ def tree(tmp_path_factory, small_dataset):
 
 
 def small_prior_config(kind: str):
-    from motok.control.priors import PriorConfig
+    from motok.control.priors.model import PriorConfig
 
     return PriorConfig(kind=kind, latent_dim=8, posterior_hidden=[16], prior_hidden=[16], decoder_hidden=[16],
                        num_codebooks=4, codebook_size=16, vq_codebook_size=32, kmeans_init=False)
@@ -49,10 +49,10 @@ def tiny_prior_bundle(root, hum, lib, data, kind: str = "hybrid", target_filter:
     """A ``kind`` prior (4 codebooks of 16 codes when residual), distilled for 2 iterations from a
     1-iteration expert (trained through ``target_filter``): untrained, but a real bundle with every
     part its readers need. Returns the prior's folder (``root/prior``; the expert is ``root/expert``)."""
-    from motok.control.distill import DistillConfig
-    from motok.control.distill import train as distill
-    from motok.control.expert import ExpertConfig
-    from motok.control.expert import train as train_expert
+    from motok.control.priors.model import DistillConfig
+    from motok.control.priors.distill import train as distill
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.train import train as train_expert
 
     ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)
     ecfg.env.num_envs, ecfg.env.nthread, ecfg.ppo.horizon, ecfg.ppo.minibatch_size = 4, 1, 8, 32

@@ -1,5 +1,5 @@
 """``motok control``: physics-based controllers. ``expert train`` / ``expert eval`` parse
-arguments only; the work is in ``motok.control.expert``."""
+arguments only; the work is in ``motok.control.expert.train``."""
 
 from __future__ import annotations
 
@@ -48,7 +48,8 @@ def train_cmd(
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
     from motok.config import load_config
-    from motok.control.expert import ExpertConfig, train_from_data
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.train import train_from_data
 
     cfg = run(load_config, ExpertConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_data, cfg, data, out, clips=clips, split=split, humanoid=humanoid, resume=resume,
@@ -78,7 +79,7 @@ def eval_cmd(
 ):
     """Success rate, MPJPE, G-MPJPE, root velocity/acceleration errors per clip and overall; the feet's
     skating, sole slip, sole penetration and jitter beside the clips' own."""
-    from motok.control.expert import evaluate_run
+    from motok.control.expert.evaluate import evaluate_run
 
     res = run(evaluate_run, run_dir, data=data, clips=clips, split=split, render=render, termination=termination,
               distance=distance, device=valid_device(device))

@@ -222,7 +222,7 @@ def labels_command(
     sets: list[str] = Sets, as_json: bool = JsonOut,
 ):
     """Label accuracy: a content/style classifier fitted on real train motion (its test accuracy is
-    reported) applied to generated motion, per prompt set (docs/gpt.md, issue 18)."""
+    reported) applied to generated motion, per prompt set (docs/gpt.md)."""
     from motok.config import load_config
     from motok.eval.labels import LabelsConfig
     from motok.eval.prompted import labels_report, summary_lines

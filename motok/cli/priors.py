@@ -1,7 +1,7 @@
 """``motok control distill`` (the latent priors, distilled online from an expert), ``motok
 control eval --task imitation --prior`` (how well a distilled prior imitates) and ``motok control
-generate`` (what a prior does on its own). Arguments only; the work is in ``motok.control.distill``,
-``motok.control.prior_eval`` and ``motok.control.generate``. :func:`register` adds the commands to
+generate`` (what a prior does on its own). Arguments only; the work is in ``motok.control.priors.distill``,
+``motok.control.priors.evaluate`` and ``motok.control.priors.generate``. :func:`register` adds the commands to
 the ``motok control`` app."""
 
 from __future__ import annotations
@@ -14,9 +14,11 @@ import typer
 from motok.cli.common import (H5, Device, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
                               output_option, recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples
+from motok.control.priors.kinds import KINDS
+from motok.control.tasks import registry
 
-PRIORS = "continuous | discrete | discrete+ | hybrid | hybrid-vq"
-EVAL_TASKS = ("imitation", "navigation", "inbetween", "hmd")  # motok.control.tasks.registry.TASKS and imitation
+PRIORS = " | ".join(KINDS)
+EVAL_TASKS = (registry.IMITATION, *registry.names())  # a prior on imitation, or a task policy on its task
 
 
 def distill_cmd(
@@ -37,7 +39,8 @@ def distill_cmd(
 ):
     """Distil the expert into a latent prior: the student acts, the expert labels (DAgger), Eq. 6."""
     from motok.config import load_config
-    from motok.control.distill import DistillConfig, train_from_expert
+    from motok.control.priors.distill import train_from_expert
+    from motok.control.priors.model import DistillConfig
 
     cfg = run(load_config, DistillConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_expert, cfg, expert, out, prior=prior, data=data, clips=clips, split=split,
@@ -48,8 +51,8 @@ def distill_cmd(
 def eval_cmd(
     prior: Optional[Path] = input_option("--prior", help="--task imitation: a control-prior folder (from `control "
                                          "distill`).", required=False),
-    task: str = typer.Option("imitation", "--task", help="imitation (a prior, --prior), or a trained task policy's "
-                             "task: navigation | inbetween | hmd (--run)."),
+    task: str = typer.Option(registry.IMITATION, "--task", help="imitation (a prior, --prior), or a trained task "
+                             f"policy's task: {' | '.join(registry.names())} (--run)."),
     run_dir: Optional[Path] = input_option("--run", help="A control-task run folder (from `control train`).",
                                            required=False),
     episodes: int = typer.Option(256, "-n", "--num-samples", help="Task policies: episodes to evaluate."),
@@ -71,12 +74,12 @@ def eval_cmd(
     """A prior on imitation (success, MPJPE, G-MPJPE, root errors) or a task policy on its task."""
     if task not in EVAL_TASKS:
         fail(f"--task must be one of {', '.join(EVAL_TASKS)}, not {task!r}")
-    if task != "imitation":
+    if task != registry.IMITATION:
         return _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json,
                           valid_device(device))
     if prior is None:
         fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --run RUN)")
-    from motok.control.prior_eval import evaluate_prior
+    from motok.control.priors.evaluate import evaluate_prior
 
     res = run(evaluate_prior, prior, task=task, data=data, clips=clips, split=split, codebooks=codebooks,
               render=render, termination=termination, distance=distance, device=valid_device(device))
@@ -92,7 +95,7 @@ def eval_cmd(
 def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json, device=None) -> None:
     if run_dir is None or prior is not None:
         fail(f"--task {task} evaluates a trained task policy: pass --run RUN (from `motok control train`), not --prior")
-    from motok.control.task_train import evaluate_run
+    from motok.control.highlevel.evaluate import evaluate_run
 
     res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render,
               device=device, task=task)
@@ -124,7 +127,7 @@ def generate_cmd(
     as_json: bool = JsonOut,
 ):
     """Unconditional generation: random codes (or prior draws) at every step from reference start states."""
-    from motok.control.generate import generate
+    from motok.control.priors.generate import generate
 
     res = run(generate, prior, out, codebooks=codebooks, seconds=seconds, num_samples=num, seed=seed, data=data,
               clips=clips, split=split, render=render)

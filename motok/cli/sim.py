@@ -112,7 +112,7 @@ def pd_track_cmd(
         fail(f"--seconds {seconds} must be > 0")
 
     def go():
-        from motok.control.baselines import pd_track_run
+        from motok.control.expert.baselines import pd_track_run
         from motok.data.dataset import select_clips
         chosen = [_key(clip)] if clip is not None else (select_clips(data, clips) if clips else None)
         return pd_track_run(*_setup(data, humanoid, hz, chosen), seconds, out, stick)

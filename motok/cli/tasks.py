@@ -1,6 +1,6 @@
 """``motok control train --task T --prior PRIOR`` (a high-level policy over a frozen prior) and
 ``motok control perturb`` (thrown balls at a trained policy). Arguments only; the work is in
-``motok.control.task_train`` and ``motok.control.perturb``. :func:`register` adds the commands
+``motok.control.highlevel.train`` and ``motok.control.highlevel.perturb``. :func:`register` adds the commands
 to the ``motok control`` app; ``motok control eval --task T --run RUN`` is in ``cli/priors.py``."""
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ import typer
 from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, output_option,
                               recipe_option, report, run)
 from motok.cli.conventions import examples
+from motok.control.tasks import registry
 
-TASK_NAMES = "navigation | inbetween | hmd"
+TASK_NAMES = " | ".join(registry.names())
 
 
 def train_cmd(
@@ -37,7 +38,8 @@ def train_cmd(
 ):
     """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
     from motok.config import load_config
-    from motok.control.task_train import TaskTrainConfig, train_from_prior
+    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.train import train_from_prior
 
     cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
     summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,
@@ -56,7 +58,7 @@ def perturb_cmd(
     as_json: bool = JsonOut,
 ):
     """Thrown balls (10 cm, 4.2 kg, 10-20 m/s from 1 m) at a trained policy, zero-shot: hits, falls, recoveries."""
-    from motok.control.perturb import PerturbConfig, perturb_run
+    from motok.control.highlevel.perturb import PerturbConfig, perturb_run
 
     res = run(lambda: perturb_run(run_dir, episodes=episodes, seed=seed, render=render,
                                   cfg=PerturbConfig(period=period)))

@@ -30,7 +30,8 @@ def track_cmd(
     as_json: bool = JsonOut,
 ):
     """Track every clip from its first frame; write the simulated bodies at the motion's frame rate."""
-    from motok.control.track import load_controller, track
+    from motok.control.priors.load import load_controller
+    from motok.control.track import track
 
     res = run(lambda: track(load_controller(expert, prior, codebooks), motion, out, clips=clips, split=split,
                                render=render))

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from motok.atomic import check_writable
 from motok.checkpoint import read_meta
+from motok.control.priors.load import Controller, load_controller
 from motok.errors import UserError
 
 H5 = (".h5", ".hdf5")
@@ -38,12 +39,10 @@ def kinematic_path(out) -> Path:
     return out.with_name(f"{out.stem}.kinematic{out.suffix}")
 
 
-def load_physics_controller(prior=None, expert=None, codebooks: int | None = None) -> tuple:
-    """:func:`motok.control.track.load_controller` behind checks that name the option at fault:
-    exactly one controller, of the bundle kind its option expects, and ``codebooks`` within the
-    prior's (a wrong bundle costs a line, not a sampling run and a traceback)."""
-    from motok.control.track import load_controller
-
+def load_physics_controller(prior=None, expert=None, codebooks: int | None = None) -> Controller:
+    """:func:`motok.control.priors.load.load_controller` behind checks that name the option at
+    fault: exactly one controller, of the bundle kind its option expects, and ``codebooks`` within
+    the prior's (a wrong bundle costs a line, not a sampling run and a traceback)."""
     if prior is None and expert is None:
         raise UserError("--codebooks goes with --physics PRIOR (a control-prior bundle)" if codebooks is not None
                         else "simulate with one controller: --physics PRIOR or --expert RUN")
@@ -58,13 +57,7 @@ def load_physics_controller(prior=None, expert=None, codebooks: int | None = Non
         other = next((o for o, (k, _) in KINDS.items() if k == found), None)
         hint = f"; pass it with {other}" if other else ""
         raise UserError(f"{option} {path}: expected a {want} bundle ({what}), found kind {found!r}{hint}")
-    controller = load_controller(expert, prior, codebooks)
-    if codebooks is not None:
-        model = controller[2].model
-        if not 1 <= codebooks <= model.num_codebooks:
-            raise UserError(f"--codebooks must be in 1..{model.num_codebooks} for this {model.kind} prior"
-                            if model.num_codebooks else f"the {model.kind} prior has no codebooks: drop --codebooks")
-    return controller
+    return load_controller(expert, prior, codebooks)
 
 
 def text_to_physics(gpt, texts: list[str], out, *, prior=None, expert=None, codebooks: int | None = None,
@@ -89,7 +82,7 @@ def text_to_physics(gpt, texts: list[str], out, *, prior=None, expert=None, code
     controller = load_physics_controller(prior, expert, codebooks)
 
     kinematic = sample(gpt, texts, kin, **sampling)
-    hum = controller[1]
+    hum = controller.humanoid
     with MotionFile(kin) as mf:
         joints = list(mf.skeleton.joints)
     if joints != list(hum.skeleton.joints):
@@ -108,7 +101,7 @@ def text_to_physics(gpt, texts: list[str], out, *, prior=None, expert=None, code
         failed = None if r["tracked_to_end"] or "seconds" not in r else r["seconds"]
         per[name] = {"text": text, "tokens": tokens, "kinematic_seconds": secs, **r, "failed_at_s": failed}
     bvhs = export_bvhs(out, bvh) if bvh is not None else []
-    meta = controller[3]
+    meta = controller.meta
     summary = {"output": str(out), "kinematic": str(kin), "controller": str(prior if prior is not None else expert),
                "controller_kind": meta.get("kind"),
                **({"codebooks": codebooks} if codebooks is not None else {}),

@@ -39,21 +39,15 @@ import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
-from motok.control.evaluate import clip_slip, play, slip_report
-from motok.data.dataset import TRACKED_TO_END, Clip, MotionFile, write_motion
+from motok.control.priors.load import Controller
+from motok.control.tasks.imitation import clip_slip, play, slip_report
+from motok.data.dataset import TRACKED_TO_END, MotionFile, write_motion
 from motok.errors import UserError
 from motok.eval.metrics import mpjpe
-from motok.features.humanml3d import extract_features
-from motok.features.resample import resample_positions
-from motok.sim.reference import ReferenceLibrary, load_library
+from motok.sim.reference import ReferenceLibrary, load_library, simulated_clip
 from motok.sim.soles import SlipSums, soles
 
 MIN_FRAMES = 4  # frames a clip needs at the control rate: a step with one frame of goal ahead, and features
-
-
-def from_mj(v: np.ndarray) -> np.ndarray:
-    """MuJoCo (Z up, X forward) -> data frame (Y up): the inverse of ``motok.sim.humanoid.to_mj``."""
-    return np.asarray(v)[..., [1, 2, 0]]
 
 
 def place_on_floor(lib: ReferenceLibrary) -> tuple[ReferenceLibrary, np.ndarray]:
@@ -69,38 +63,11 @@ def place_on_floor(lib: ReferenceLibrary) -> tuple[ReferenceLibrary, np.ndarray]
     return replace(lib, qpos=qpos, body_pos=body_pos, joints=joints, lowest=lib.lowest + per_frame), shift
 
 
-def simulated_clip(name: str, sim_pos: np.ndarray, control_hz: float, fps: float, skeleton, offsets,
-                   legacy: bool, source: str, **clip_fields) -> Clip:
-    """Simulated body positions ``(T, J, 3)`` (MuJoCo frame, at the control rate) as a clip at the
-    motion's rate ``fps``, with features, joints, rotations and root translation recomputed from
-    them, so every motok tool reads it; ``clip_fields``: the Clip's split, labels, captions."""
-    pos = from_mj(sim_pos)
-    if abs(control_hz - fps) > 1e-6:
-        pos = resample_positions(pos, control_hz, fps)
-    f = extract_features(pos, skeleton, target_offsets=offsets, fps=fps, legacy=legacy)
-    return Clip(name, f.features, f.joints, f.local_quats, f.root_translation, source=source, source_fps=fps,
-                **clip_fields)
-
-
-def load_controller(expert=None, prior=None, codebooks: int | None = None) -> tuple:
-    """The ``(cfg, humanoid, policy, meta)`` that :func:`track` drives: an expert run, or a distilled
-    prior's posterior and decoder (acting on the current pose; the first ``codebooks`` only)."""
-    if (expert is None) == (prior is None):
-        raise UserError("track with one controller: --expert RUN or --prior PRIOR")
-    if expert is not None:
-        from motok.control.expert import load_expert
-        return load_expert(expert)
-    from motok.control.dagger import StudentPolicy
-    from motok.control.distill import load_prior
-    cfg, hum, model, meta = load_prior(prior)
-    return cfg, hum, StudentPolicy(model, codebooks), meta
-
-
-def track(controller, motion, out, *, clips: str | None = None, split: str | None = None, render=None,
-          batch: int = 256, chunk: int = 2048) -> dict:
-    """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with ``controller``, a
-    ``(cfg, humanoid, actor_critic, meta)`` tuple such as ``motok.control.expert.load_expert``
-    returns, and write the simulated clips to ``out``, and the per-clip and overall results beside
+def track(controller: Controller, motion, out, *, clips: str | None = None, split: str | None = None,
+          render=None, batch: int = 256, chunk: int = 2048) -> dict:
+    """Track the clips of ``motion`` (all, or those of ``split`` and/or the ``clips`` glob) with
+    ``controller`` (:func:`motok.control.priors.load.load_controller`), write the simulated clips
+    to ``out``, and the per-clip and overall results beside
     it (:func:`report_path`, kind ``control-track``), which it also returns.
 
     ``batch`` clips are simulated at once, longest first; their reference library is built for
@@ -108,7 +75,7 @@ def track(controller, motion, out, *, clips: str | None = None, split: str | Non
     would fill this machine's memory), never cached (each motion is tracked once)."""
     from motok.data.dataset import select_clips
 
-    cfg, hum, ac, meta = controller
+    cfg, hum, ac, meta = controller.cfg, controller.humanoid, controller.policy, controller.meta
     motion, out = Path(motion), Path(out)
     with MotionFile(motion) as mf:
         names = select_clips(motion, clips, split) if clips or split else list(mf.names)

@@ -1,4 +1,4 @@
-"""The generation row of the T2M protocol: sample a motok GPT (issue 4) for the captions of the
+"""The generation row of the T2M protocol: sample a motok GPT for the captions of the
 evaluation split, as T2M-GPT's evaluation does (``utils/eval_trans.py``: one motion per test
 caption in every repeat, and 30 motions for each of 100 captions for MModality).
 

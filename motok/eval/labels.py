@@ -1,4 +1,4 @@
-"""Label accuracy of motion (issue 18, ``motok eval labels``): does generated motion show the
+"""Label accuracy of motion (``motok eval labels``): does generated motion show the
 content and the style its sentence asked for?
 
 A small classifier of the dataset's labels (content and style, the Bandai-Namco set-2 labels or any

@@ -69,7 +69,7 @@ def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: i
     """Every clip through the tokenizer (cut to a multiple of its rate, as ``tokenize eval``)."""
     import torch
 
-    from motok.tokenizer.train import load_tokenizer
+    from motok.tokenizer.model import load_tokenizer
     model, meta = load_tokenizer(tokenizer)
     m = num_codebooks or model.num_codebooks
     clips, caps, kept, err = [], [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}

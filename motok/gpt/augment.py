@@ -1,4 +1,4 @@
-"""Caption augmentation for the text-to-motion GPT (issue 18: follow sentences never seen).
+"""Caption augmentation for the text-to-motion GPT (to follow sentences never seen).
 
 The GPT reads a frozen sentence embedding, so it can only be as robust to new wordings as the
 variety of wordings (and embeddings) it was trained on. Three augmentations, all off by default:

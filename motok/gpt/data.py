@@ -1,7 +1,7 @@
 """The GPT's training data (T2M-GPT Sec. 3.2): first-codebook codes of every clip with the
 embeddings of its captions, corrupted inputs, padded batches and the random-crop sampler.
 
-Issue 18: ``load_code_data`` drops the captions in held-out wordings (``holdout``,
+Held-out wordings: ``load_code_data`` drops the captions in held-out wordings (``holdout``,
 :mod:`motok.text.phrasings`) and adds the augmented captions of :mod:`motok.gpt.augment`.
 """
 

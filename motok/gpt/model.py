@@ -15,7 +15,7 @@ Residual-VQ tokenizers: the model predicts the first codebook only (one token pe
 motion is decoded from that codebook alone (``M = 1``), which quantizer dropout trained the
 tokenizer to do. docs/gpt.md discusses it.
 
-Token-level conditioning (``text_tokens: P``, issue 18): instead of one pooled sentence vector,
+Token-level conditioning (``text_tokens: P``): instead of one pooled sentence vector,
 the encoder's per-token outputs (padded or cut to P, a ``*_tokens`` text encoder) take positions
 0..P-1, each projected by ``W_c``, and the causal self-attention reads them as a prefix (the
 prefix-LM form of conditioning; cross-attention is the other). The output at position P - 1
@@ -32,13 +32,16 @@ worth of compute instead of re-running the whole prefix.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from motok.config import ConfigError
+from motok.checkpoint import load_bundle, register_kind
+from motok.config import ConfigError, from_dict
+from motok.optim import OptimConfig
 
 
 @dataclass
@@ -50,7 +53,7 @@ class GPTConfig:
     block_size: int = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
     ff_mult: int = 4
     dropout: float = 0.1
-    # Token-level conditioning (issue 18): 0 = one pooled sentence vector at position 0 (the paper);
+    # Token-level conditioning: 0 = one pooled sentence vector at position 0 (the paper);
     # P > 0 = the encoder's P per-token outputs as a prefix of P positions (a ``*_tokens`` encoder).
     text_tokens: int = 0
 
@@ -201,3 +204,55 @@ class MotionGPT(nn.Module):
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+KIND = "gpt"
+register_kind(KIND, (1,))
+
+
+@dataclass
+class TrainConfig:
+    model: GPTConfig = field(default_factory=GPTConfig)
+    # The paper's GPT optimizer: AdamW (0.5, 0.99), lr 1e-4, no warm-up (T2M-GPT Sec. 4.1).
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=[0.5, 0.99], weight_decay=1e-6,
+                                                                   warmup=0))
+    text_encoder: str = "minilm"  # minilm | clip | bow
+    text_cache: str = ""  # text-embeddings artifact; "" = next to the tokens artifact
+    tau: float = 0.5  # fraction of input codes replaced by random codes
+    tau_uniform: bool = False  # draw tau ~ U[0, 1] per sequence instead
+    # holdout "v1": captions in the held-out wordings of motok.text.phrasings never train.
+    holdout: str = ""
+    # Caption augmentation (motok.gpt.augment), all off by default:
+    recombine: int = 0  # new captions per group of clips, recombined from the captions' own phrases
+    word_dropout: float = 0.0  # probability of dropping a word, in word_dropout_variants copies per caption
+    word_dropout_variants: int = 0
+    text_noise: float = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
+    caption_dropout: float = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
+    guidance: float = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
+    snap: int = 0  # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
+    iterations: int = 2000
+    batch_size: int = 64  # global: split evenly over the ranks
+    split: str = "train"
+    val_split: str = "val"  # "" = no validation loss
+    seed: int = 123
+    log_every: int = 50
+    eval_every: int = 250
+    save_every: int = 500
+    device: str = "auto"  # auto | cpu | cuda
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+
+
+def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> MotionGPT:
+    cfg = cfg if isinstance(cfg, TrainConfig) else from_dict(TrainConfig, cfg)
+    model = MotionGPT(cfg.model, codebook_size, text_dim, null_text=cfg.caption_dropout > 0)
+    model.default_guidance = float(cfg.guidance)
+    return model
+
+
+def load_gpt(run: str | Path, device: str | torch.device = "cpu") -> tuple[MotionGPT, dict]:
+    """A trained GPT in eval mode and its bundle metadata."""
+    meta, state, _ = load_bundle(run, KIND)
+    ex = meta["extra"]
+    model = build_model(meta["config"], int(ex["codebook_size"]), int(ex["text_dim"]))
+    model.load_state_dict(state)
+    return model.to(device).eval(), meta

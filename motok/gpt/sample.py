@@ -33,7 +33,8 @@ from motok.atomic import check_writable
 from motok.checkpoint import bundle_ref
 from motok.data.dataset import write_motion
 from motok.gpt.model import MotionGPT
-from motok.gpt.train import GPTError, load_gpt
+from motok.gpt.data import GPTError
+from motok.gpt.model import load_gpt
 from motok.skeleton import Skeleton
 from motok.text.cache import TextEmbeddingCache
 from motok.text.encoders import get_encoder
@@ -170,7 +171,7 @@ def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allo
     With ``snap`` (default: the run's recipe) the cache snaps new sentences (:mod:`motok.gpt.snap`)."""
     from motok.gpt.snap import snapping
 
-    from motok.tokenizer.train import load_tokenizer
+    from motok.tokenizer.model import load_tokenizer
 
     run = Path(run)
     model, meta = load_gpt(run)

@@ -1,4 +1,4 @@
-"""Conditioning on the nearest training caption (issue 18, ``snap``): a sentence the GPT never
+"""Conditioning on the nearest training caption (``snap``): a sentence the GPT never
 trained on is replaced, before sampling, by the embedding of the training caption nearest to it.
 
 The GPT maps training-caption embeddings to the right motion (label accuracy 0.91 on test

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,52 +32,18 @@ import torch.nn.functional as F
 
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind, resolve_ref
-from motok.config import ConfigError, from_dict, load_config, to_dict
+from motok.checkpoint import MetricsLog, load_bundle, resolve_ref
+from motok.config import ConfigError, load_config, to_dict
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
-from motok.optim import OptimConfig, lr_factor
+from motok.optim import lr_factor
 from motok.gpt.augment import noisy
 from motok.gpt.data import (HOLDOUTS, IGNORE, CodeData, GPTError, SequenceSampler, corrupt,  # noqa: F401
                              default_cache_path, load_code_data, make_batch)
-from motok.gpt.model import GPTConfig, MotionGPT
+from motok.gpt.model import KIND, MotionGPT, TrainConfig, build_model
 from motok.text.cache import TextEmbeddingCache
 from motok.tokenizer.tokens import TokenFile
 
-KIND = "gpt"
-register_kind(KIND, (1,))
-
-
-@dataclass
-class TrainConfig:
-    model: GPTConfig = field(default_factory=GPTConfig)
-    # The paper's GPT optimizer: AdamW (0.5, 0.99), lr 1e-4, no warm-up (T2M-GPT Sec. 4.1).
-    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=[0.5, 0.99], weight_decay=1e-6,
-                                                                   warmup=0))
-    text_encoder: str = "minilm"  # minilm | clip | bow
-    text_cache: str = ""  # text-embeddings artifact; "" = next to the tokens artifact
-    tau: float = 0.5  # fraction of input codes replaced by random codes
-    tau_uniform: bool = False  # draw tau ~ U[0, 1] per sequence instead
-    # Issue 18. holdout "v1": captions in the held-out wordings of motok.text.phrasings never train.
-    holdout: str = ""
-    # Caption augmentation (motok.gpt.augment), all off by default:
-    recombine: int = 0  # new captions per group of clips, recombined from the captions' own phrases
-    word_dropout: float = 0.0  # probability of dropping a word, in word_dropout_variants copies per caption
-    word_dropout_variants: int = 0
-    text_noise: float = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
-    caption_dropout: float = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
-    guidance: float = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
-    snap: int = 0  # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
-    iterations: int = 2000
-    batch_size: int = 64  # global: split evenly over the ranks
-    split: str = "train"
-    val_split: str = "val"  # "" = no validation loss
-    seed: int = 123
-    log_every: int = 50
-    eval_every: int = 250
-    save_every: int = 500
-    device: str = "auto"  # auto | cpu | cuda
-    threads: int = 0  # torch intra-op threads; 0 = torch's default
 
 
 def gpt_loss(logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -130,22 +95,6 @@ def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: b
         if to_dict(cfg)[k] != saved[k]:
             raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
     return cfg
-
-
-def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> MotionGPT:
-    cfg = cfg if isinstance(cfg, TrainConfig) else from_dict(TrainConfig, cfg)
-    model = MotionGPT(cfg.model, codebook_size, text_dim, null_text=cfg.caption_dropout > 0)
-    model.default_guidance = float(cfg.guidance)
-    return model
-
-
-def load_gpt(run: str | Path, device: str | torch.device = "cpu") -> tuple[MotionGPT, dict]:
-    """A trained GPT in eval mode and its bundle metadata."""
-    meta, state, _ = load_bundle(run, KIND)
-    ex = meta["extra"]
-    model = build_model(meta["config"], int(ex["codebook_size"]), int(ex["text_dim"]))
-    model.load_state_dict(state)
-    return model.to(device).eval(), meta
 
 
 @torch.no_grad()

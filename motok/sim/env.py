@@ -11,7 +11,7 @@ knows no reference motion and draws no random numbers.
 
 ``launch(targets)`` / ``finish()`` split a step in two: the physics runs on a worker thread
 (MuJoCo releases the GIL while it steps) until ``finish`` collects it, so the caller can run a
-policy on other environments meanwhile (``motok.control.rollout`` steps groups of environments
+policy on other environments meanwhile (``motok.control.rl.rollout`` steps groups of environments
 in turn this way). ``step`` is ``launch`` then ``finish``, with no thread.
 
 Bad input stays contained: targets with non-finite entries either raise before anything is

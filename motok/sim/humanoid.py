@@ -41,6 +41,11 @@ def to_mj(v: np.ndarray) -> np.ndarray:
     return np.asarray(v)[..., [2, 0, 1]]
 
 
+def from_mj(v: np.ndarray) -> np.ndarray:
+    """MuJoCo (Z up, X forward) -> data frame (Y up): the inverse of :func:`to_mj`."""
+    return np.asarray(v)[..., [1, 2, 0]]
+
+
 @dataclass
 class HumanoidConfig:
     total_mass: float = 65.0  # kg; densities are scaled to reach it

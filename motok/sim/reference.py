@@ -5,6 +5,9 @@ kinematics against the humanoid's fixed rest geometry, then resampling); qvel is
 difference of qpos (``mj_differentiatePos``); body positions, rotations, linear and angular
 velocities come from MuJoCo's forward kinematics. The library is cached in one ``.npz`` keyed by
 the dataset's hash, the MJCF text and the rate, so it is built once.
+
+The way back, :func:`simulated_clip`, turns simulated body positions into a motion clip at the
+dataset's frame rate (tracking and generation write their results with it).
 """
 
 from __future__ import annotations
@@ -20,10 +23,11 @@ import numpy as np
 from motok.arrays import is_tensor, xp
 from motok.artifacts import sha256_file
 from motok.atomic import atomic_path
-from motok.data.dataset import MotionFile, clip_index
+from motok.data.dataset import Clip, MotionFile, clip_index
 from motok.errors import MotokError
+from motok.features.humanml3d import extract_features
 from motok.features.resample import resample_positions
-from motok.sim.humanoid import Humanoid, HumanoidConfig, load_humanoid, to_mj
+from motok.sim.humanoid import Humanoid, HumanoidConfig, from_mj, load_humanoid, to_mj
 from motok.sim.mjcf import build_humanoid
 from motok.sim.retarget import clip_qpos
 
@@ -178,9 +182,9 @@ def build_library(hum: Humanoid, data_path, control_hz: float | None = None, cli
         for i in idx:
             joints = np.asarray(mf.frames("joints", i), dtype=np.float64)
             qpos = clip_qpos(joints, hum, mf.fps, hz)
+            res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
             qvel = _qvel(hum.model, qpos, 1.0 / hz)
             st = body_states(hum, qpos, qvel)
-            res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
             for k, v in dict(qpos=qpos, qvel=qvel, joints=to_mj(res), **st).items():
                 parts[k].append(v)
             names.append(mf.names[i])
@@ -226,3 +230,16 @@ def humanoid_for(data_path, cache_dir=None):
         with atomic_path(path) as tmp:
             build_humanoid(data_path, tmp)
     return load_humanoid(path)
+
+
+def simulated_clip(name: str, sim_pos: np.ndarray, control_hz: float, fps: float, skeleton, offsets,
+                   legacy: bool, source: str, **clip_fields) -> Clip:
+    """Simulated body positions ``(T, J, 3)`` (MuJoCo frame, at the control rate) as a clip at the
+    motion's rate ``fps``, with features, joints, rotations and root translation recomputed from
+    them, so every motok tool reads it; ``clip_fields``: the Clip's split, labels, captions."""
+    pos = from_mj(sim_pos)
+    if abs(control_hz - fps) > 1e-6:
+        pos = resample_positions(pos, control_hz, fps)
+    f = extract_features(pos, skeleton, target_offsets=offsets, fps=fps, legacy=legacy)
+    return Clip(name, f.features, f.joints, f.local_quats, f.root_translation, source=source, source_fps=fps,
+                **clip_fields)

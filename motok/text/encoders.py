@@ -266,7 +266,7 @@ class TokenFeatures:
     """The per-token outputs of a sentence-transformers encoder (its last layer before pooling,
     special tokens included), cut or zero-padded to ``length`` tokens and flattened to
     ``(B, length * d)`` so they cache like sentence vectors; the GPT's ``model.text_tokens``
-    reshapes them back (token-level conditioning, issue 18)."""
+    reshapes them back (token-level conditioning)."""
 
     length = 24
 

@@ -1,4 +1,4 @@
-"""The phrasing-held-out split of the Bandai-Namco set-2 captions (issue 18), version 1: fixed.
+"""The phrasing-held-out split of the Bandai-Namco set-2 captions, version 1: fixed.
 
 Bandai captions are written from labels (10 contents x 7 styles) with a few wordings each, and
 the test split's captions reuse the training wordings, so the test R-precision cannot show

@@ -1,4 +1,4 @@
-"""What a frozen sentence encoder separates (issue 18): left from right, one hand from both,
+"""What a frozen sentence encoder separates: left from right, one hand from both,
 walking from running, across wordings. ``motok eval text-separation --encoder NAME``.
 
 For a contrast with meanings A and B, each said in several wordings ``w`` so that ``A_w`` and

@@ -10,13 +10,18 @@ so a bundle alone maps raw features to tokens and back.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from motok.checkpoint import load_bundle, register_kind
+from motok.config import from_dict
+from motok.errors import MotokError
 from motok.features.humanml3d import feature_slices
+from motok.optim import OptimConfig
 from motok.quantize.base import QuantizerConfig
 from motok.quantize.registry import build_quantizer
 
@@ -201,3 +206,44 @@ def vqvae_loss(recon: torch.Tensor, target: torch.Tensor, losses: dict, cfg: Los
     total = rec + cfg.alpha_vel * vel + cfg.beta_commit * beta_scale * commit + cfg.codebook * codebook
     parts = {"loss": total, "recon": rec, "vel": vel, "commit": commit, "codebook": codebook}
     return total, {k: v.detach() for k, v in parts.items()}
+
+
+KIND = "tokenizer"
+register_kind(KIND, (1,))
+
+
+@dataclass
+class TrainConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    # init="t2m_gpt": codebooks start as in T2M-GPT's code (uniform for vq, the first batch for
+    # the EMA and reset kinds); "uniform" is the start of motok <= 0.1 for every kind.
+    quantizer: QuantizerConfig = field(
+        default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128, init="t2m_gpt"))
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    iterations: int = 2000
+    batch_size: int = 64  # global: split evenly over the ranks
+    window: int = 64  # frames per training crop
+    split: str = "train"
+    seed: int = 123
+    log_every: int = 50
+    save_every: int = 500
+    device: str = "auto"  # auto | cpu | cuda
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+
+
+class TokenizerError(MotokError, ValueError):
+    pass
+
+
+def build_model(meta_or_cfg: dict | TrainConfig, feature_dim: int) -> VQVAE:
+    cfg = meta_or_cfg if isinstance(meta_or_cfg, TrainConfig) else from_dict(TrainConfig, meta_or_cfg)
+    return VQVAE(feature_dim, cfg.model, cfg.quantizer)
+
+
+def load_tokenizer(run: str | Path, device: str | torch.device = "cpu") -> tuple[VQVAE, dict]:
+    """A trained tokenizer in eval mode and its bundle metadata (config, dataset meta)."""
+    meta, state, _ = load_bundle(run, KIND)
+    model = build_model(meta["config"], int(meta["extra"]["feature_dim"]))
+    model.load_state_dict(state)
+    return model.to(device).eval(), meta

@@ -23,7 +23,7 @@ from motok.data.dataset import Clip, MotionFile, write_motion
 from motok.features.humanml3d import recover_from_ric, recover_local_quats
 from motok.features.kinematics import acceleration_error, mpjpe
 from motok.skeleton import Skeleton
-from motok.tokenizer.train import TokenizerError, load_tokenizer
+from motok.tokenizer.model import TokenizerError, load_tokenizer
 
 KIND = "tokens"
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,43 +24,15 @@ import torch
 
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
-from motok.checkpoint import MetricsLog, load_bundle, register_kind
+from motok.checkpoint import MetricsLog, load_bundle
 from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
-from motok.errors import MotokError
 from motok.optim import OptimConfig, lr_factor
-from motok.quantize.base import QuantizerConfig
 from motok.quantize.registry import build_quantizer
-from motok.tokenizer.model import ACTIVATIONS, VQVAE, LossConfig, ModelConfig, vqvae_loss
+from motok.tokenizer.model import ACTIVATIONS, KIND, TokenizerError, TrainConfig, build_model, vqvae_loss
 
-KIND = "tokenizer"
-register_kind(KIND, (1,))
-
-
-@dataclass
-class TrainConfig:
-    model: ModelConfig = field(default_factory=ModelConfig)
-    # init="t2m_gpt": codebooks start as in T2M-GPT's code (uniform for vq, the first batch for
-    # the EMA and reset kinds); "uniform" is the start of motok <= 0.1 for every kind.
-    quantizer: QuantizerConfig = field(
-        default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128, init="t2m_gpt"))
-    loss: LossConfig = field(default_factory=LossConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    iterations: int = 2000
-    batch_size: int = 64  # global: split evenly over the ranks
-    window: int = 64  # frames per training crop
-    split: str = "train"
-    seed: int = 123
-    log_every: int = 50
-    save_every: int = 500
-    device: str = "auto"  # auto | cpu | cuda
-    threads: int = 0  # torch intra-op threads; 0 = torch's default
-
-
-class TokenizerError(MotokError, ValueError):
-    pass
 
 
 # --------------------------------------------------------------------------- data
@@ -194,19 +166,6 @@ def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: b
         if to_dict(cfg)[k] != saved[k]:
             raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
     return check_config(cfg)
-
-
-def build_model(meta_or_cfg: dict | TrainConfig, feature_dim: int) -> VQVAE:
-    cfg = meta_or_cfg if isinstance(meta_or_cfg, TrainConfig) else from_dict(TrainConfig, meta_or_cfg)
-    return VQVAE(feature_dim, cfg.model, cfg.quantizer)
-
-
-def load_tokenizer(run: str | Path, device: str | torch.device = "cpu") -> tuple[VQVAE, dict]:
-    """A trained tokenizer in eval mode and its bundle metadata (config, dataset meta)."""
-    meta, state, _ = load_bundle(run, KIND)
-    model = build_model(meta["config"], int(meta["extra"]["feature_dim"]))
-    model.load_state_dict(state)
-    return model.to(device).eval(), meta
 
 
 # --------------------------------------------------------------------------- loop

@@ -24,8 +24,8 @@ BASES = ("current", "reference")
 
 @dataclass
 class ActionConfig:
-    base: str = "current"
-    scale: float = 1.0
+    base: str = "current"  # what the action is a residual on: current | reference
+    scale: float = 1.0  # PD target offset (rad) per unit of action
 
     def __post_init__(self):
         if self.base not in BASES:

@@ -53,14 +53,14 @@ def rotation_angle(q, q_ref):
 class HeadRewardConfig:
     """Weights and exponents of the head reward (the fork's ``compute_phc_reward`` on the head)."""
 
-    w_pos: float = 0.5
-    k_pos: float = 100.0
-    w_rot: float = 0.3
-    k_rot: float = 10.0
-    w_vel: float = 0.1
-    k_vel: float = 0.1
-    w_angvel: float = 0.1
-    k_angvel: float = 0.1
+    w_pos: float = 0.5  # weight of exp(-k_pos e_pos)
+    k_pos: float = 100.0  # exponent on e_pos, the the head's position error (m^2)
+    w_rot: float = 0.3  # weight of exp(-k_rot e_rot)
+    k_rot: float = 10.0  # exponent on e_rot, the the angle between head rotations (rad^2)
+    w_vel: float = 0.1  # weight of exp(-k_vel e_vel)
+    k_vel: float = 0.1  # exponent on e_vel, the the head's velocity error ((m/s)^2)
+    w_angvel: float = 0.1  # weight of exp(-k_angvel e_angvel)
+    k_angvel: float = 0.1  # exponent on e_angvel, the the head's angular velocity error ((rad/s)^2)
 
     def __post_init__(self):
         check_non_negative(self, "hmd reward")

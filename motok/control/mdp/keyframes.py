@@ -121,14 +121,14 @@ def keyframe_goal(sim: Bodies, keys: Bodies):
 class InbetweenRewardConfig:
     """Eq. 14 weights and exponents (the fork's ``compute_deepmimic_reward``)."""
 
-    w_q: float = 0.65
-    k_q: float = 2.0
-    w_qd: float = 0.1
-    k_qd: float = 0.1
-    w_ee: float = 0.15
-    k_ee: float = 40.0
-    w_root: float = 0.1
-    k_root: float = 10.0
+    w_q: float = 0.65  # weight of exp(-k_q e_q)
+    k_q: float = 2.0  # exponent on e_q, the mean squared hinge angle error (rad^2)
+    w_qd: float = 0.1  # weight of exp(-k_qd e_qd)
+    k_qd: float = 0.1  # exponent on e_qd, the mean squared hinge velocity error ((rad/s)^2)
+    w_ee: float = 0.15  # weight of exp(-k_ee e_ee)
+    k_ee: float = 40.0  # exponent on e_ee, the mean squared end-effector position error (m^2)
+    w_root: float = 0.1  # weight of exp(-k_root e_root)
+    k_root: float = 10.0  # exponent on e_root, the squared root position error (m^2)
 
     def __post_init__(self):
         check_non_negative(self, "inbetween reward")

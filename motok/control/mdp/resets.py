@@ -68,7 +68,7 @@ def check_start_frames(lib: ReferenceLibrary, clips: np.ndarray, frames: np.ndar
 def sample_starts(lib: ReferenceLibrary, n: int, rng, ahead: int, clip_p=None):
     """Random start clips and frames leaving ``ahead`` frames after them: clips in proportion to
     their usable length (``clip_p=None``) or to given probabilities (difficulty sampling,
-    ``motok.control.sampling``); frames uniform within the clip. ``rng``: a numpy generator for a
+    ``motok.control.rl.sampling``); frames uniform within the clip. ``rng``: a numpy generator for a
     host library, a ``torch.Generator`` on the library's device for a device one."""
     if is_tensor(lib.starts):
         import torch

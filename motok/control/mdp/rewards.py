@@ -11,7 +11,7 @@
   ``e_feet`` the mean over the foot bodies (ankles and toes) of their squared linear velocity error
   ((m/s)^2): a planted reference foot then asks the simulated one to hold still, which the
   position terms barely see (a foot sliding 20 cm/s is 7 mm off after one control step).
-* The style reward (Eq. 11) is a learned term: ``motok.control.amp``.
+* The style reward (Eq. 11) is a learned term: ``motok.control.rl.amp``.
 """
 
 from __future__ import annotations
@@ -31,11 +31,11 @@ def check_non_negative(cfg, label: str) -> None:
 
 @dataclass
 class ImitationConfig:
-    k_root: float = 10.0
-    k_q: float = 2.0
-    k_alpha: float = 0.5
-    k_ee: float = 40.0
-    k_feet: float = 0.0  # exponent of the foot-velocity term; 0 leaves it out (the paper's Eq. 10)
+    k_root: float = 10.0  # Eq. 10's factor exp(-k_root e_root), e_root the root position error (m^2)
+    k_q: float = 2.0  # exp(-k_q e_q), e_q the hinge angle error (rad^2)
+    k_alpha: float = 0.5  # exp(-k_alpha e_alpha), e_alpha the mean squared hinge velocity error ((rad/s)^2)
+    k_ee: float = 40.0  # exp(-k_ee e_ee), e_ee the root-relative end-effector position error (m^2)
+    k_feet: float = 0.0  # exp(-k_feet e_feet), e_feet the feet's velocity error ((m/s)^2); 0 leaves it out (Eq. 10)
 
 
 def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict:

@@ -25,7 +25,10 @@ from motok.control.mdp.head import HEAD_FEATURES, HeadRewardConfig, head_distanc
     head_lost, head_reward
 from motok.control.mdp.resets import (ClipProbabilities, check_rate, check_start_frames, given_starts, host_lengths,
                                       reference_bodies, reference_state, sample_starts)
+from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.mdp.terminations import body_distances, end_of_step
+from motok.control.tasks.episodes import Act, EpisodeErrors, reference_errors, whole_episodes
+from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
 from motok.sim.reference import ReferenceLibrary
@@ -33,11 +36,11 @@ from motok.sim.reference import ReferenceLibrary
 
 @dataclass
 class HMDTaskConfig:
-    episode_seconds: float = 5.0
+    episode_seconds: float = 5.0  # an episode's length (a head trajectory)
     goal_frames: int = 5  # reference head frames ahead in the goal (the fork's numNextObsSteps)
     termination_distance: float = 1.0  # m, head to reference head (paper C.2; the fork's recipe: 1.5)
     early_termination: bool = True
-    reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)
+    reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)  # the head reward's weights and exponents
 
     def __post_init__(self):
         if not self.episode_seconds > 0:
@@ -48,7 +51,7 @@ class HMDTaskConfig:
             raise UserError(f"hmd task: termination_distance must be > 0, got {self.termination_distance}")
 
 
-class HMDTask:
+class HMDTask(Task):
     """Episode state per environment: ``clip``, ``start``, ``frame`` (the reference frame the
     simulation is at), ``steps``, ``limit``; ``head`` is the tracked body (the skeleton's head).
     Device tensors with an on-device environment and library (as the imitation task)."""
@@ -93,6 +96,9 @@ class HMDTask:
     def goal(self):
         return copy(self._goal)
 
+    def step_limit(self):
+        return self.limit
+
     def markers(self) -> np.ndarray:
         """``(N, 1, 3)`` the reference head at the current frame (world), for videos."""
         m = self.lib.body_pos[self.lib.frame_index(self.clip, self.frame), self.head][:, None]
@@ -120,3 +126,20 @@ class HMDTask:
                 "diverged": diverged,
                 "invalid_action": invalid, "episode_steps": copy(self.steps)}
         return rewards, terminated, truncated, info
+
+
+def evaluate_hmd(mdp: TaskEnv, act: Act, episodes: int) -> dict:
+    """Table 3 protocol: ``episodes`` 5 s head trajectories, played to their end, full-body errors
+    over all frames plus the head's own error and the share of frames it stayed within the
+    termination distance. Early termination is restored afterwards."""
+    task = mdp.task
+    if not isinstance(task, HMDTask):
+        raise UserError(f"evaluate_hmd needs a TaskEnv around an HMDTask, got {type(task).__name__}")
+    with whole_episodes(task):
+        out = reference_errors(mdp, act, episodes, EpisodeErrors(mdp.num_envs, head=task.head,
+                                                     within=task.cfg.termination_distance))
+    return {k: v for k, v in out.items() if not k.startswith("keyframe_")} | \
+        {"per_episode": {k: v for k, v in out["per_episode"].items() if not k.startswith("keyframe_")}}
+
+
+SPEC = TaskSpec("hmd", HMDTaskConfig, HMDTask, evaluate_hmd)  # appendix C.2, Table 3

@@ -6,7 +6,7 @@ reference window at their frames.
   also the first keyframe. ``num_keyframes`` keyframes in all (``mdp.keyframes.sample_keyframes``:
   the start, random interior frames at least ``min_keyframe_gap_seconds`` apart, the window's last
   frame). Training uses 4 per 4 s window (C.1); the paper's Table 2 evaluates with 5 per 4 s, which
-  ``eval_keyframes`` holds and ``motok.control.task_eval.evaluate_inbetween`` switches to;
+  ``eval_keyframes`` holds and :func:`evaluate_inbetween` switches to;
 * goal: Eq. 12 position and rotation differences to two keyframes, plus (added to them, as the
   fork does) the Eq. 13 sinusoidal encoding of the frames left until the next keyframe.
   ``goal_keyframes="next"``: the next keyframe to reach and the one after it (the last keyframe
@@ -38,7 +38,10 @@ from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfi
                                          time_encoding)
 from motok.control.mdp.resets import (ClipProbabilities, check_rate, given_starts, host_lengths, reference_bodies,
                                       reference_state, sample_starts)
+from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.mdp.terminations import MODES, body_distances, end_of_step, tracking_failure
+from motok.control.tasks.episodes import Act, EpisodeErrors, reference_errors, whole_episodes
+from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
 from motok.sim.obs import Bodies
@@ -50,7 +53,7 @@ TIME_ENCODINGS = ("add", "concat", "none")
 
 @dataclass
 class InbetweenTaskConfig:
-    window_seconds: float = 4.0
+    window_seconds: float = 4.0  # a window's length; its last frame is the last keyframe
     num_keyframes: int = 4  # per window, the start and the window's last frame included (C.1, training)
     eval_keyframes: int = 5  # per window in evaluation (Table 2)
     min_keyframe_gap_seconds: float = 0.5  # the fork's 15 frames at 30 Hz
@@ -60,7 +63,7 @@ class InbetweenTaskConfig:
     termination: str = "mean"  # body distance test: "mean" over bodies or "any" body
     termination_distance: float = 0.5  # m, from the reference
     early_termination: bool = True
-    reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)
+    reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)  # Eq. 14's weights and exponents
 
     def __post_init__(self):
         if not self.window_seconds > 0:
@@ -78,7 +81,7 @@ class InbetweenTaskConfig:
             raise UserError(f"inbetween task: termination_distance must be > 0, got {self.termination_distance}")
 
 
-class InbetweenTask:
+class InbetweenTask(Task):
     """Episode state per environment: ``clip``, ``start`` (the window's first frame), ``frame`` (the
     reference frame the simulation is at), ``steps``, ``limit`` (steps to the last keyframe),
     ``keyframes`` ``(N, K)`` (clip frames, for renderers too) and ``target`` (index of the next
@@ -168,6 +171,13 @@ class InbetweenTask:
         """Reference bodies ``(N, K, J, .)`` of every environment's keyframes."""
         return reference_bodies(self.lib, self.clip[:, None], self.keyframes)
 
+    def step_limit(self):
+        return self.limit
+
+    def for_evaluation(self) -> None:
+        """The evaluation's keyframe count (Table 2's 5 per window), so a video shows what is measured."""
+        self.set_keyframe_count(self.cfg.eval_keyframes)
+
     def markers(self) -> np.ndarray:
         """``(N, J, 3)`` world body positions of the next keyframe to reach, for videos."""
         g = self.lib.frame_index(self.clip, take_along(self.keyframes, self.target[:, None], 1)[:, 0])
@@ -201,3 +211,25 @@ class InbetweenTask:
                 "invalid_action": invalid, "episode_steps": copy(self.steps)}
         self._refresh_goal(slice(None))
         return rewards, terminated, truncated, info
+
+
+def evaluate_inbetween(mdp: TaskEnv, act: Act, episodes: int) -> dict:
+    """Table 2 protocol: ``episodes`` 4 s windows with ``cfg.eval_keyframes`` keyframes each (5,
+    where training uses 4), played to their end, errors over all frames and at the target
+    keyframes. The task's keyframe count and early termination are restored afterwards and every
+    environment reset."""
+    task = mdp.task
+    if not isinstance(task, InbetweenTask):
+        raise UserError(f"evaluate_inbetween needs a TaskEnv around an InbetweenTask, got {type(task).__name__}")
+    before = task.num_keyframes
+    task.set_keyframe_count(task.cfg.eval_keyframes)
+    try:
+        with whole_episodes(task):
+            out = reference_errors(mdp, act, episodes, EpisodeErrors(mdp.num_envs))
+    finally:
+        task.set_keyframe_count(before)
+        mdp.reset()
+    return {"keyframes_per_window": int(task.cfg.eval_keyframes), **out}
+
+
+SPEC = TaskSpec("inbetween", InbetweenTaskConfig, InbetweenTask, evaluate_inbetween)  # appendix C.1, Table 2

@@ -14,11 +14,17 @@
 The fork (``andreazhangyh/hybrid_latent_prior``, ``humanoid_navigation.py``) differs in two
 book-keeping details we do not copy: it computes the goal observation before drawing the new
 target (the policy sees the new target one step late) and truncates one step early (239 steps).
+
+Evaluation (:func:`evaluate_navigation`): how many targets are reached before they change, how
+fast, how often the character falls, and how it moves once there (the idle phase: its root speed,
+and the body motion itself, whose motion-matching distance to the dataset
+(``motok.eval.motion_matching``) :func:`report` adds to a full evaluation).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -26,15 +32,19 @@ from motok.arrays import copy, is_tensor, like, xp
 from motok.control.mdp.navigation import (head_fell, heading_frame_target, navigation_reward, planar_distance,
                                           sample_targets)
 from motok.control.mdp.resets import host_lengths, reference_state, sample_starts
+from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.mdp.terminations import end_of_step
+from motok.control.tasks.episodes import Step, play_episodes
+from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv
+from motok.sim.humanoid import from_mj
 from motok.sim.reference import ReferenceLibrary
 
 
 @dataclass
 class NavigationTaskConfig:
-    episode_seconds: float = 8.0
+    episode_seconds: float = 8.0  # an episode's length (two targets)
     retarget_seconds: float = 4.0  # a new target this often (120 control steps at 30 Hz)
     min_distance: float = 5.0  # m, new targets from the root
     max_distance: float = 10.0
@@ -42,7 +52,7 @@ class NavigationTaskConfig:
     reach_radius: float = 0.5  # m: the velocity term is 1 within it; "reached" for evaluation
     k_pos: float = 0.5  # exp(-k_pos d^2)
     w_pos: float = 0.7
-    w_vel: float = 0.3
+    w_vel: float = 0.3  # weight of the velocity term
     fall_height: float = 0.5  # m, head height
     early_termination: bool = True
     head_body: str | None = None  # the body tested for falls; None: the skeleton's head joint
@@ -70,7 +80,7 @@ def head_index(skeleton, name: str | None = None) -> int:
     return skeleton.joints.index(name)
 
 
-class NavigationTask:
+class NavigationTask(Task):
     """Episode state per environment: ``target`` ``(N, 2)`` (world xy, for renderers too),
     ``steps`` since the reset, ``target_steps`` since the target appeared, ``target_index``
     within the episode, ``reached_step`` (first ``target_steps`` within the radius, -1: not yet).
@@ -140,6 +150,9 @@ class NavigationTask:
     def goal(self):
         return copy(self._goal)
 
+    def step_limit(self) -> int:
+        return self.max_steps
+
     def markers(self) -> np.ndarray:
         """``(N, 1, 3)``: each target as a point just above the floor, for videos."""
         t = self.target.cpu().numpy() if is_tensor(self.target) else self.target
@@ -182,3 +195,135 @@ class NavigationTask:
             self.target_index = self.target_index + retarget.to(self.target_index.dtype)
         self._refresh_goal(slice(None))
         return rewards, terminated, truncated, info
+
+
+# ---------------------------------------------------------------------- evaluation
+
+MIN_IDLE_SECONDS = 0.5  # a stay at the target shorter than this is passing through, not idling
+# Nor is walking through the 1 m circle (0.7 s at 1.4 m/s): idling is at most this root speed, m/s,
+# under half the data's slowest walking pace (median 1.06 m/s for the turns of set 2).
+IDLE_SPEED = 0.5
+
+
+def stays(mask: np.ndarray, episode: np.ndarray, min_steps: int) -> list[tuple[int, int, int]]:
+    """``(env, first step, end step)`` of every run of ``mask (S, N)`` that lasts ``min_steps`` or
+    more without ``episode (S, N)`` (an environment's episode counter) changing inside it."""
+    same = np.ones(mask.shape, dtype=bool)
+    same[1:] = episode[1:] == episode[:-1]
+    begin, finish = mask.copy(), mask.copy()
+    begin[1:] &= ~(mask[:-1] & same[1:])  # on, and not going on from the step before
+    finish[:-1] &= ~(mask[1:] & same[1:])  # on, and not going on into the next step
+    out = []
+    for n in np.flatnonzero(mask.any(0)):  # a loop over stays, after the rollout
+        for a, b in zip(np.flatnonzero(begin[:, n]), np.flatnonzero(finish[:, n]) + 1):
+            if b - a >= min_steps:
+                out.append((int(n), int(a), int(b)))
+    return out
+
+
+def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], episodes: int,
+                        idle_speed: float = IDLE_SPEED) -> dict:
+    """Run ``act(obs, goal) -> actions`` (numpy, all environments at once) on ``mdp`` from fresh
+    episodes until ``episodes`` have ended; the task's generator draws the starts and targets.
+
+    A target counts as reached if the root came within the reach radius while it was current; one
+    cut short by a fall counts as missed. Returns ``episodes``, ``targets``, ``reached_share``,
+    ``time_to_reach_mean_s`` / ``_median_s`` (over reached targets, NaN if none),
+    ``falls_per_episode`` (head falls), ``diverged``, ``mean_reward`` (the main term per step),
+    ``goal_speeds`` (planar root speed, m/s, of every step spent within the radius) and its
+    ``goal_speed_mean`` / ``goal_speed_median``; per target, the root's distance when it appeared
+    and the closest it came while it was current (``start_distances``, ``closest_distances``, m)
+    with their means and ``approach_share``, the mean share of the starting distance closed
+    (``1 - closest / start``: 1 at the target, 0 for no step toward it; the paper's reached share
+    is 0 for a policy that walks toward a 5-10 m target at the rewarded 1 m/s, which this tells
+    from one that stands); and ``idle_bodies``: the body positions
+    ``(T, J, 3)`` (MuJoCo frame, control rate) of every stay within the radius, slower than
+    ``idle_speed`` (m/s), of at least :data:`MIN_IDLE_SECONDS`, for the idle phase's motion matching."""
+    if not isinstance(mdp.task, NavigationTask):
+        raise UserError(f"evaluate_navigation needs a TaskEnv around a NavigationTask, got {type(mdp.task).__name__}")
+    key, N = mdp.task.reward_key, mdp.num_envs
+    c = dict(targets=0, reached=0, falls=0, diverged=0, steps=0, reward=0.0)
+    times, speeds, starts, closests = [], [], [], []
+    # Per step: who idles at its target, in which of its episodes, and the bodies of those idling.
+    idling, episode, bodies = [], [], []
+    count = np.zeros(N, dtype=np.int64)  # episodes each environment has ended
+    start, closest = np.zeros(N), np.zeros(N)  # per current target: the distance when it appeared, the closest since
+
+    def to_target():
+        return np.asarray(planar_distance(mdp.env.bodies.pos[:, 0], mdp.task.target), np.float64)
+
+    def on_step(s: Step) -> None:
+        nonlocal closest
+        info, live = s.info, s.live
+        closest = np.fmin(closest, info["distance"])  # a diverged step (NaN) does not erase the approach
+        at_goal = info["reached"] & live
+        idling.append(at_goal & (info["root_speed"] < idle_speed))
+        episode.append(count.copy())
+        bodies.append(mdp.env.bodies.pos[idling[-1]].astype(np.float32))
+        ends = info["target_ends"] & live
+        c["targets"] += int(ends.sum())
+        hit = ends & info["target_reached"]
+        c["reached"] += int(hit.sum())
+        times.append(info["time_to_reach"][hit])
+        starts.append(start[ends])
+        closests.append(closest[ends])
+        speeds.append(info["root_speed"][at_goal])
+        c["falls"] += int((info["fell"] & s.terminated & live).sum())
+        c["diverged"] += int((info["diverged"] & live).sum())
+        c["reward"] += float(s.rewards[key][live].sum())
+        c["steps"] += int(live.sum())
+        count[s.ended] += 1
+        # A new target from the next step on; an ended episode's new target is measured after its reset.
+        new = info["target_ends"].copy()
+        new[s.ended] = False
+        if new.any():
+            start[new] = to_target()[new]
+            closest[new] = start[new]
+
+    def on_reset(ids, fresh) -> None:
+        start[ids] = to_target()[ids]
+        closest[ids] = start[ids]
+
+    play_episodes(mdp, act, episodes, on_step, on_reset)
+    times, speeds = np.concatenate(times), np.concatenate(speeds)
+    starts, closests = np.concatenate(starts), np.concatenate(closests)
+    min_steps = max(3, int(round(MIN_IDLE_SECONDS / mdp.dt)))
+    mask = np.stack(idling)
+    row = np.full(mask.shape, -1)
+    row[mask] = np.arange(int(mask.sum()))  # row-major, as the per-step rows were appended
+    pos = np.concatenate(bodies)
+    idle = [pos[row[a:b, n]] for n, a, b in stays(mask, np.stack(episode), min_steps)]
+
+    def stat(f, a):
+        return float(f(a)) if len(a) else float("nan")
+
+    return {"episodes": int(episodes), "targets": c["targets"], "reached_share": c["reached"] / max(c["targets"], 1),
+            "time_to_reach_mean_s": stat(np.mean, times), "time_to_reach_median_s": stat(np.median, times),
+            "falls_per_episode": c["falls"] / int(episodes), "diverged": c["diverged"],
+            "mean_reward": c["reward"] / max(c["steps"], 1),
+            "goal_speeds": speeds, "goal_speed_mean": stat(np.mean, speeds),
+            "goal_speed_median": stat(np.median, speeds), "start_distances": starts, "closest_distances": closests,
+            "start_distance_mean_m": stat(np.mean, starts), "closest_distance_mean_m": stat(np.mean, closests),
+            "approach_share": stat(np.mean, 1.0 - closests / np.maximum(starts, 1e-9)), "idle_bodies": idle}
+
+
+def idle_matching(idle_bodies: list[np.ndarray], data, names, hz: float) -> dict:
+    """The idle phase's naturalness: Eq. 8 motion matching (``motok.eval.motion_matching``) of
+    the transitions of ``idle_bodies`` (from :func:`evaluate_navigation`, at the control rate
+    ``hz``) against the clips ``names`` of the dataset ``data``: distance, filtered rate, coverage."""
+    from motok.eval.motion_matching import match_joints, no_transitions, reference
+
+    if not idle_bodies:  # no stay to match: no threshold to derive either
+        return no_transitions()
+    return match_joints(reference(data, list(names)), [from_mj(b) for b in idle_bodies], hz)
+
+
+def report(res: dict, data, lib) -> dict:
+    """A full evaluation's measures that need the dataset: the idle phase's motion matching
+    against the clips the policy started from (``idle_bodies`` replaced by their summary)."""
+    mm = res["idle_motion_matching"] = idle_matching(res.pop("idle_bodies"), data, lib.names, lib.fps)
+    res.update({f"idle_{k}": mm[k] for k in ("transitions", "distance_mean", "filtered_rate")})
+    return res
+
+
+SPEC = TaskSpec("navigation", NavigationTaskConfig, NavigationTask, evaluate_navigation, report)  # appendix C.3

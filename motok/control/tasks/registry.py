@@ -1,45 +1,87 @@
-"""The tasks a high-level policy learns (``motok control train --task NAME``): each a config, a
-task class on the :class:`~motok.control.tasks.base.Task` protocol and an evaluation function
-``evaluate(mdp, act, episodes) -> dict`` (the paper's metrics for that task). A task may also
-have ``markers() -> (N, K, 3)``, world points a video draws (targets, keyframes, a head target)."""
+"""The table of tasks a high-level policy learns over a frozen prior (``motok control train --task
+NAME``, ``motok control eval --task NAME --run RUN``, a recipe's ``tasks:`` section).
+
+Every file of this folder but :data:`HELPERS` and the imitation task is a task, and declares
+``SPEC``, a :class:`TaskSpec`: its config, its task class, its evaluation, and what a full
+evaluation adds from the dataset. A new task is one file here plus a recipe: the command line,
+:class:`TaskConfigs` and the trainer read this table. Listing the names reads the folder only (the
+command line's help must not import torch or MuJoCo); a task's module is imported when its spec
+is asked for.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import importlib
+import pkgutil
+from dataclasses import dataclass, field, make_dataclass
+from functools import cache
+from pathlib import Path
+from typing import Callable
 
-from motok.control.nav_eval import evaluate_navigation
-from motok.control.task_eval import evaluate_hmd, evaluate_inbetween
-from motok.control.tasks.hmd import HMDTask, HMDTaskConfig
-from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
-from motok.control.tasks.navigation import NavigationTask, NavigationTaskConfig
 from motok.errors import UserError
 
-TASKS = {
-    "navigation": (NavigationTask, evaluate_navigation),  # appendix C.3
-    "inbetween": (InbetweenTask, evaluate_inbetween),  # C.1
-    "hmd": (HMDTask, evaluate_hmd),  # C.2
-}
+HELPERS = ("registry", "episodes")  # files of this folder that are not tasks
+# The expert's and the priors' task, learned by `control expert train` and `control distill` and
+# evaluated with `control eval --task imitation --prior`, not over a prior.
+IMITATION = "imitation"
 
 
-@dataclass
-class TaskConfigs:
-    """Every task's settings; the recipe's ``task:`` names the one in use (``tasks.navigation.speed=...``)."""
+def _as_is(res: dict, data, lib) -> dict:
+    return res
 
-    navigation: NavigationTaskConfig = field(default_factory=NavigationTaskConfig)
-    inbetween: InbetweenTaskConfig = field(default_factory=InbetweenTaskConfig)
-    hmd: HMDTaskConfig = field(default_factory=HMDTaskConfig)
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """One task as the trainer, the evaluations and the command line see it."""
+
+    name: str  # the task's name: --task NAME, tasks.NAME in a recipe, the file's name
+    config: type  # its settings, a dataclass (the recipe's tasks.NAME section)
+    task: type  # its Task class, built as task(config, env, library, rng)
+    evaluate: Callable  # evaluate(mdp, act, episodes) -> dict: the task's metrics over whole episodes
+    report: Callable = _as_is  # report(result, data, library) -> result: what a full evaluation adds from the dataset
+
+
+def names() -> list[str]:
+    """The tasks a policy learns over a prior, from this folder's files alone (nothing imported)."""
+    here = str(Path(__file__).parent)
+    return sorted(m.name for m in pkgutil.iter_modules([here])
+                  if not m.name.startswith("_") and m.name not in (*HELPERS, IMITATION))
 
 
 def check(name: str) -> None:
-    if name not in TASKS:
-        raise UserError(f"task must be one of {', '.join(TASKS)}, not {name!r}")
+    if name not in names():
+        raise UserError(f"task must be one of {', '.join(names())}, not {name!r}")
 
 
-def make(name: str, cfgs: TaskConfigs, env, lib, rng):
+@cache
+def spec(name: str) -> TaskSpec:
+    """The ``SPEC`` of the task ``name``."""
     check(name)
-    return TASKS[name][0](getattr(cfgs, name), env, lib, rng)
+    found = getattr(importlib.import_module(f"{__package__}.{name}"), "SPEC", None)
+    if not isinstance(found, TaskSpec) or found.name != name:
+        raise TypeError(f"{__package__}.{name} must declare SPEC = TaskSpec({name!r}, ...)")
+    return found
+
+
+@cache
+def _task_configs() -> type:
+    cls = make_dataclass("TaskConfigs", [(n, spec(n).config, field(default_factory=spec(n).config)) for n in names()])
+    cls.__module__ = __name__
+    return cls
+
+
+def __getattr__(attr: str):
+    # TaskConfigs: every task's settings, one field per task (``tasks.navigation.speed=...``); the
+    # recipe's ``task:`` names the one in use. Built on first use: it imports every task.
+    if attr == "TaskConfigs":
+        return _task_configs()
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")
+
+
+def make(name: str, cfgs, env, lib, rng):
+    """The task ``name`` with its settings from ``cfgs`` (a :class:`TaskConfigs`)."""
+    return spec(name).task(getattr(cfgs, name), env, lib, rng)
 
 
 def evaluate(name: str, mdp, act, episodes: int) -> dict:
-    check(name)
-    return TASKS[name][1](mdp, act, episodes)
+    return spec(name).evaluate(mdp, act, episodes)

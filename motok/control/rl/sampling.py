@@ -2,7 +2,7 @@
 mining, PULSE's failure-weighted sampling), for an expert that must cover a whole dataset.
 
 Every ``every`` iterations an evaluation plays every training clip from its first frame
-(``motok.control.evaluate``) and sets each clip's **failure** ``f_c = 1 - played_c / playable_c``
+(``motok.control.tasks.imitation``) and sets each clip's **failure** ``f_c = 1 - played_c / playable_c``
 (0 for a clip played to its end, 1 for a fall at the first step; graded, so a clip lost near its
 end weighs less than one lost at once). Start clips are then drawn with
 

@@ -16,7 +16,7 @@ the current-pose base (``q_hat = q + scale a``, as in distillation).
 A sample ends at the requested length, or when it falls (the head below ``fall_height``, 0.5 m)
 or the simulation diverges: it is not reset; the frames up to the last upright one are kept and
 the fall time is reported per sample. The simulated bodies are written as a ``motion`` artifact
-at the dataset's frame rate (:func:`motok.control.track.simulated_clip`), so ``motok info``,
+at the dataset's frame rate (:func:`motok.sim.reference.simulated_clip`), so ``motok info``,
 ``render``, ``export bvh`` and ``motok eval`` read it like any other motion.
 """
 
@@ -29,36 +29,19 @@ import numpy as np
 import torch
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.control import runner
-from motok.control.distill import load_prior
+from motok.control import runs
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.resets import reference_state
-from motok.control.priors import LatentPrior
-from motok.control.rollout import as_tensor
-from motok.control.track import simulated_clip
+from motok.control.priors.load import check_codebooks
+from motok.control.priors.model import LatentPrior, load_prior
+from motok.control.rl.rollout import as_tensor
+from motok.sim.reference import simulated_clip
 from motok.data.dataset import MotionFile, write_motion
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
 
 FALL_HEIGHT = 0.5  # m: the head below this ends a sample (the fall test of tasks without a reference)
-
-
-def check_codebooks(model: LatentPrior, codebooks: int | None) -> int:
-    """M, the codebooks to sample from (all by default); 0 for the continuous prior."""
-    n = model.num_codebooks
-    if model.quantizer is None:
-        if codebooks is not None:
-            raise UserError("the continuous prior has no codebooks: leave out --codebooks")
-        return 0
-    if codebooks is None:
-        return n
-    if codebooks == 0 and model.prior is not None:
-        return 0
-    if not 1 <= codebooks <= n:
-        alone = " (or 0: the prior's z_p alone)" if model.prior is not None else ""
-        raise UserError(f"--codebooks must be in 1..{n}{alone} for this {model.kind} prior")
-    return codebooks
 
 
 @torch.no_grad()
@@ -133,7 +116,7 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
     cfg, hum, model, meta = load_prior(prior_run)
     m = check_codebooks(model, codebooks)
     hz = float(cfg.env.control_hz or hum.control_hz)
-    src, lib = runner.run_library(prior_run, meta, hum, hz, data, clips, split)
+    src, lib = runs.run_library(prior_run, meta, hum, hz, data, clips, split)
     with MotionFile(src) as mf:
         fps, skeleton, legacy, offsets = mf.fps, mf.skeleton, mf.legacy, np.asarray(mf.offsets, np.float64)
     steps = max(1, int(round(seconds * hz)))
@@ -143,7 +126,7 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
     tag = model.kind if model.quantizer is None else f"{model.kind}-m{m}"
     names = [f"{tag}-{i:03d}" for i in range(num_samples)]
     written, per, video = [], {}, None
-    with runner.torch_threads(cfg.torch_threads), make_progress("steps") as bar:
+    with runs.torch_threads(cfg.torch_threads), make_progress("steps") as bar:
         task = bar.add_task(f"generate {tag}", total=steps * len(range(0, num_samples, batch)))
         for a in range(0, num_samples, batch):
             ids = np.arange(a, min(a + batch, num_samples))

@@ -1,6 +1,6 @@
 """Evaluation of a distilled prior on the imitation task (``motok control eval --task imitation
 --prior PRIOR``; the paper's Fig. 4): the student's posterior reads the goal and its decoder acts,
-every clip from frame 0 with the most likely latent (``motok.control.evaluate``), optionally
+every clip from frame 0 with the most likely latent (``motok.control.tasks.imitation``), optionally
 with only the first M codebooks of a residual prior."""
 
 from __future__ import annotations
@@ -11,13 +11,13 @@ from pathlib import Path
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
-from motok.control import runner
-from motok.control.dagger import StudentPolicy
-from motok.control.distill import load_prior
-from motok.control.evaluate import by_group, evaluate
+from motok.control import runs
+from motok.control.priors.load import StudentPolicy, check_codebooks
+from motok.control.priors.model import load_prior
+from motok.control.tasks.imitation import by_group, evaluate
+from motok.control.tasks.registry import IMITATION
 from motok.errors import UserError
 
-TASKS = ("imitation",)
 
 
 def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None = None, split: str | None = None,
@@ -27,23 +27,22 @@ def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None
     its distillation clips (or the clips of ``data`` in ``split`` / matching ``clips``), per clip,
     per content and style, and overall; written to ``PRIOR/eval[_SPLIT][_mM].json`` with the
     checkpoint it measured and provenance."""
-    if task not in TASKS:
-        raise UserError(f"--task must be one of {', '.join(TASKS)}, not {task!r}")
+    if task != IMITATION:
+        raise UserError(f"--task must be {IMITATION} for a prior, not {task!r}")
     run = Path(run)
     cfg, hum, model, meta = load_prior(run)
-    if codebooks is not None and not 1 <= codebooks <= model.num_codebooks:
-        raise UserError(f"--codebooks must be in 1..{model.num_codebooks} for this {model.kind} prior"
-                        if model.num_codebooks else f"the {model.kind} prior has no codebooks")
+    if codebooks is not None:
+        check_codebooks(model, codebooks, prior_alone=False)
     if termination is not None:
         cfg.task.termination = termination
     if distance is not None:
         cfg.task.termination_distance = distance
     cfg.env.on(device)
-    src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split)
+    src, lib = runs.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split)
     res = evaluate(hum, StudentPolicy(model, codebooks), lib, cfg.env, cfg.task, cfg.action, render,
                    batch=cfg.eval_batch)
     res["groups"] = by_group(res["clips"])
-    res["checkpoint"] = {**runner.checkpoint_info(meta), "prior": meta["extra"]["prior"],
+    res["checkpoint"] = {**runs.checkpoint_info(meta), "prior": meta["extra"]["prior"],
                          "codebooks": codebooks or model.num_codebooks}
     prov = Provenance(command=command_line(), config={"prior": str(run), "task": task, "clips": clips, "split": split,
                                                         "codebooks": codebooks, "imitation": asdict(cfg.task)},

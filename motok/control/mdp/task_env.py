@@ -1,12 +1,16 @@
 """The MDP a policy acts in: physics (``HumanoidEnv``) + a task + an action map.
 
-A task is any object with
+A task (:class:`Task`, the base of the tasks in ``motok.control.tasks``) has
 
 * ``goal_dim`` and ``reward_key`` (the name of its main reward term, e.g. ``"r_im"``);
 * ``reset(ids, **where)``: put environments ``ids`` in start states (through ``env.set_state``);
 * ``goal() -> (N, goal_dim)``: the task part of the policy input, after a reset or step;
 * ``update(diverged, invalid) -> (rewards, terminated, truncated, info)`` after a physics step,
-  ``rewards`` a dict of ``(N,)`` terms that holds ``reward_key``.
+  ``rewards`` a dict of ``(N,)`` terms that holds ``reward_key``;
+
+and, where it differs from the base's, what generic code asks of it: ``markers()`` for videos,
+``step_limit()`` for tests that need an episode's length, ``for_evaluation()`` for a video of
+the episodes its evaluation plays.
 
 There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
 episodes) and then calls ``reset(ids)`` for the finished environments.
@@ -17,7 +21,7 @@ goals, rewards, masks) is a torch tensor on the physics device.
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from typing import Callable
 
 import numpy as np
 
@@ -27,15 +31,33 @@ from motok.sim.env import HumanoidEnv
 ActionMap = Callable[[np.ndarray, HumanoidEnv, "Task"], np.ndarray]  # (actions, env, task) -> PD targets
 
 
-class Task(Protocol):
+class Task:
+    """What a policy is asked to do, with its episode state and its random generator."""
+
     goal_dim: int
-    reward_key: str
+    reward_key: str = "r_task"
+    marker_radius: float = 0.12  # m, the dots :meth:`markers` draws in videos
 
-    def reset(self, ids: np.ndarray, **where) -> None: ...
+    def reset(self, ids: np.ndarray, **where) -> None:  # pragma: no cover - every task defines it
+        raise NotImplementedError
 
-    def goal(self) -> np.ndarray: ...
+    def goal(self) -> np.ndarray:  # pragma: no cover - every task defines it
+        raise NotImplementedError
 
-    def update(self, diverged: np.ndarray, invalid: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray, dict]: ...
+    def update(self, diverged: np.ndarray, invalid: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray, dict]:
+        raise NotImplementedError  # pragma: no cover - every task defines it
+
+    def markers(self) -> np.ndarray | None:
+        """``(N, K, 3)`` world points a video draws (targets, keyframes, a head); None: nothing."""
+        return None
+
+    def step_limit(self):
+        """Each environment's episode length in control steps (``(N,)`` or one number)."""
+        return np.iinfo(np.int64).max
+
+    def for_evaluation(self) -> None:
+        """Switch to the settings the task's evaluation plays with, for a video of such an episode
+        (every environment must be reset afterwards)."""
 
 
 class TaskEnv:

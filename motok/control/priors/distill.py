@@ -1,9 +1,9 @@
 """Online distillation of a latent prior from the frozen expert (hybrid-latent paper section
 4.3.1, Eq. 6): ``motok control distill``.
 
-Per iteration the student (:class:`motok.control.priors.LatentPrior`) acts in the batched
+Per iteration the student (:class:`motok.control.priors.model.LatentPrior`) acts in the batched
 imitation MDP with its own actions on the current-pose base, the expert labels every visited
-state (:mod:`motok.control.dagger`: DAgger, with the label conversion), and a supervised update
+state (:mod:`motok.control.priors.dagger`: DAgger, with the label conversion), and a supervised update
 over minibatches minimises Eq. 6,
 
     L = 10 ||a - a_label||^2 + alpha L_reg + beta L_commit + gamma L_mm  (+ w_kl KL(q || p))
@@ -15,7 +15,7 @@ hybrids) and ``w_kl`` (continuous) ramped linearly from 0.1 to 1.0 and 0.05 to 0
 12.5 % of the iterations (the authors' schedule). Minibatches are sets of whole environment
 columns, so both steps of every neighbouring pair are in the same forward pass.
 
-The runner (:mod:`motok.control.runner`) does seeding, checkpoints and exact resume, metrics,
+The runner (:mod:`motok.control.rl.runner`) does seeding, checkpoints and exact resume, metrics,
 provenance, the MJCF copy and hash, and torchrun. The bundle (kind ``control-prior``) records the
 expert it was distilled from (path relative to the bundle and absolute), the prior's kind, sizes
 and codebooks.
@@ -24,80 +24,34 @@ and codebooks.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from motok.checkpoint import bundle_ref, read_meta, register_kind
-from motok.config import from_dict
-from motok.control import runner
-from motok.control.dagger import DaggerBatch, DaggerCollector, StudentPolicy
-from motok.control.evaluate import eval_metrics, evaluate, subset
-from motok.control.expert import KIND as EXPERT_KIND, imitation_mdp, load_expert, split_state
-from motok.control.mdp.actions import ActionConfig
-from motok.control.networks import ActorCritic
-from motok.control.ppo import average_gradients, world_size
-from motok.control.priors import KINDS, LatentPrior, Latents, PriorConfig, squared_norm
-from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.checkpoint import bundle_ref, read_meta
+from motok.control import runs
+from motok.control.expert.model import KIND as EXPERT_KIND
+from motok.control.expert.model import load_expert
+from motok.control.expert.train import imitation_mdp
+from motok.control.priors.dagger import DaggerBatch, DaggerCollector
+from motok.control.priors.load import StudentPolicy
+from motok.control.priors.kinds import KINDS
+from motok.control.priors.model import KIND, DistillConfig, LatentPrior, Latents, squared_norm
+from motok.control.rl import runner
+from motok.control.rl.networks import ActorCritic
+from motok.control.rl.ppo import average_gradients, world_size
+from motok.control.tasks.imitation import eval_metrics, evaluate, subset
 from motok.data.dataset import select_clips
 from motok.distributed import Dist
 from motok.errors import UserError
-from motok.sim.env import SimConfig
 from motok.sim.humanoid import Humanoid, load_humanoid
 from motok.sim.reference import ReferenceLibrary
 
-KIND = "control-prior"
-register_kind(KIND, (1,))
-REG_DEFAULT = {"continuous": 0.005}  # alpha of Eq. 6 when the recipe leaves it unset; 0.05 otherwise
 BAR = (("act", "action_loss", "{:.3g}"), ("commit", "commit_loss", "{:.3g}"), ("usage", "code_usage", "{:.2f}"),
        ("len", "episode_seconds", "{:.2f}s"), ("succ", "success", "{:.2f}"))
 SUMMARY = ("action_loss", "rollout_action_err", "commit_loss", "mm_loss", "reg_loss", "kl_loss", "code_usage",
            "episode_seconds", "success", "r_im", "samples_per_s")
-
-
-@dataclass
-class WeightSchedule:
-    start: float = 0.0
-    end: float = 0.0
-    ramp: float = 0.125  # share of the iterations over which the weight moves linearly from start to end
-
-    def at(self, iteration: int, total: int) -> float:
-        n = self.ramp * total
-        return self.end if n <= 0 else self.start + (self.end - self.start) * min(iteration / n, 1.0)
-
-
-@dataclass
-class LossConfig:
-    action: float = 10.0  # weight of ||a - a_label||^2
-    commit: float = 1.0  # beta
-    reg: float | None = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
-    mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
-    kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
-
-
-@dataclass
-class DistillConfig:
-    seed: int = 0
-    iterations: int = 3000
-    save_every: int = 50
-    eval_every: int = 0  # iterations between imitation evaluations of the student, logged as eval_*
-    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every clip)
-    eval_batch: int = 256
-    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
-    update_threads: int = 0  # during the supervised update, while the physics is idle (0: torch_threads)
-    horizon: int = 32  # steps per environment per iteration
-    epochs: int = 4  # passes over each iteration's data
-    minibatch_size: int = 1024  # samples; rounded down to whole environment columns of `horizon` steps
-    lr: float = 2e-4  # the authors' distillation learning rate
-    max_grad_norm: float = 1.0
-    action_noise: float = 0.055  # std of the noise on the student's actions while collecting (rad)
-    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
-    task: ImitationTaskConfig = field(default_factory=lambda: ImitationTaskConfig(termination="mean"))
-    action: ActionConfig = field(default_factory=lambda: ActionConfig("current"))
-    prior: PriorConfig = field(default_factory=PriorConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
 
 
 def latent_change(latents: list[torch.Tensor], horizon: int, done: torch.Tensor) -> torch.Tensor:
@@ -154,7 +108,7 @@ class DistillTrainer:
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr)
         self.collector = DaggerCollector(m, self.model, self.expert, expert_cfg.action, cfg.horizon,
                                          cfg.action_noise, cfg.action.scale)
-        self.alpha = cfg.loss.reg if cfg.loss.reg is not None else REG_DEFAULT.get(cfg.prior.kind, 0.05)
+        self.alpha = cfg.loss.reg if cfg.loss.reg is not None else KINDS[cfg.prior.kind].reg
         self.samples_per_iteration = cfg.horizon * m.num_envs * d.world
         self.iteration, self.samples, self.wall = 0, 0, 0.0
 
@@ -169,7 +123,7 @@ class DistillTrainer:
         return runner.task_rng_state(self.mdp)
 
     def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
-        self.model.load_state_dict(split_state(model, "model."))
+        self.model.load_state_dict(runs.split_state(model, "model."))
         if shared is None:
             return
         runner.load_counters(self, shared)
@@ -222,14 +176,11 @@ class DistillTrainer:
                 reset += sum(out.stats.get("dead", []))
                 active += out.stats.get("num_active_codebooks", 0)
                 steps += 1
-        keep = {"continuous": ("kl_loss",), "hybrid": ("commit_loss", "mm_loss"),
-                "hybrid-vq": ("commit_loss", "mm_loss")}.get(c.prior.kind, ("commit_loss",))
+        caps = model.caps
         out = {k: v / max(steps, 1) for k, v in sums.items()
-               if k in ("action_loss", "reg_loss", "loss", "grad_norm") or k in keep}
-        if c.prior.kind in ("hybrid", "hybrid-vq"):
-            out["w_mm"] = w["mm"]
-        elif c.prior.kind == "continuous":
-            out["w_kl"] = w["kl"]
+               if k in ("action_loss", "reg_loss", "loss", "grad_norm") or k in caps.losses}
+        if caps.schedule is not None:
+            out[f"w_{caps.schedule}"] = w[caps.schedule]
         if model.quantizer is not None:
             out.update(codes_reset=reset, active_codebooks=active / max(steps, 1))
         return out
@@ -238,7 +189,7 @@ class DistillTrainer:
         t0 = time.perf_counter()
         batch, stats = self.collector.collect()
         t1 = time.perf_counter()
-        with runner.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
+        with runs.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
             stats.update(self.update(batch))
         return runner.finish_step(self, stats, t0, t1)
 
@@ -246,9 +197,9 @@ class DistillTrainer:
 # ---------------------------------------------------------------------- entry points
 
 def expert_record(expert_run) -> dict:
-    """The expert a prior was distilled from, for the bundle's metadata (:func:`runner.link_record`),
+    """The expert a prior was distilled from, for the bundle's metadata (:func:`runs.link_record`),
     with its action map (what the label conversion needs)."""
-    rec = runner.link_record("expert", expert_run, EXPERT_KIND)
+    rec = runs.link_record("expert", expert_run, EXPERT_KIND)
     cfg = read_meta(expert_run, EXPERT_KIND)["config"]["action"]
     rec["expert_info"]["action"] = {"base": cfg["base"], "scale": cfg["scale"]}
     return rec
@@ -256,7 +207,7 @@ def expert_record(expert_run) -> dict:
 
 def expert_path(run, meta: dict) -> Path:
     """Where the prior bundle ``run``'s expert is: relative to the bundle first, then absolute."""
-    return runner.linked_path(run, meta, "expert")
+    return runs.linked_path(run, meta, "expert")
 
 
 def train(cfg: DistillConfig, run, expert_run, lib: ReferenceLibrary, *, resume: bool = False,
@@ -302,14 +253,3 @@ def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None 
     hum = load_humanoid(expert_run / "humanoid.xml")
     lib = load_library(hum, src, control_hz=cfg.env.control_hz, clips=names)
     return train(cfg, run, expert_run, lib, resume=resume, until=until, data=src)
-
-
-def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
-    """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""
-    meta, state, hum = runner.load_run(run, KIND)
-    cfg = from_dict(DistillConfig, meta["config"])
-    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
-    ex = meta["extra"]
-    model = LatentPrior(cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
-    model.load_state_dict(split_state(state, "model."))
-    return cfg, hum, model.eval(), meta

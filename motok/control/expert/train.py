@@ -3,12 +3,12 @@
 
 * ``r_im``, Eq. 10, the product form of ``motok.control.mdp.rewards`` (the imitation task's
   reward, ``motok.control.tasks.imitation``);
-* ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.amp``, a reward hook of the
+* ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.rl.amp``, a reward hook of the
   rollout collector.
 
 The trainer only composes parts: physics (``HumanoidEnv``), the imitation task, the action map
-(residual PD targets), the encoder-decoder policy, the collector and PPO; the runner
-(``motok.control.runner``) does the rest. Training saves a bundle (kind ``control-expert``)
+(residual PD targets), the encoder-decoder policy (``motok.control.expert.model``), the collector
+and PPO; the runner (``motok.control.rl.runner``) does the rest. Training saves a bundle (kind ``control-expert``)
 every ``save_every`` iterations with the MJCF (``RUN/humanoid.xml``) and its hash, the
 observation/action spec, the normaliser statistics, and everything needed to resume exactly:
 optimisers, replay buffer, torch/numpy/task RNG states.
@@ -16,76 +16,31 @@ optimisers, replay buffer, torch/numpy/task RNG states.
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import write_json
-from motok.checkpoint import register_kind
-from motok.config import from_dict
-from motok.control import runner
-from motok.control.amp import AMP, AMPConfig, AMPHook, reference_observations
-from motok.control.evaluate import by_group, eval_metrics, evaluate, subset, summarise
+from motok.control import runs
+from motok.control.expert.model import KIND, ExpertConfig, build_actor_critic
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.networks import ActorCritic, RunningNorm, ValueNet
-from motok.control.policies import EncoderDecoderPolicy
-from motok.control.ppo import PPO, PPOConfig
-from motok.control.rollout import Collector
-from motok.control.sampling import DifficultySampler, SamplingConfig, failures
-from motok.control.tasks.base import TaskEnv
-from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
+from motok.control.mdp.task_env import TaskEnv
+from motok.control.rl import runner
+from motok.control.rl.amp import AMP, AMPHook, reference_observations
+from motok.control.rl.ppo import PPO
+from motok.control.rl.rollout import Collector
+from motok.control.rl.sampling import DifficultySampler, failures
+from motok.control.tasks.imitation import (ImitationTask, ImitationTaskConfig, eval_metrics, evaluate, subset,
+                                          summarise)
 from motok.data.dataset import select_clips
 from motok.distributed import Dist, gather
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid, config_difference, load_humanoid
 from motok.sim.reference import ReferenceLibrary
-
-KIND = "control-expert"
-register_kind(KIND, (1,))
-
-
-@dataclass
-class NetConfig:
-    latent_dim: int = 64
-    encoder: list[int] = field(default_factory=lambda: [512, 256])
-    decoder: list[int] = field(default_factory=lambda: [512, 256])
-    value: list[int] = field(default_factory=lambda: [512, 256])
-    activation: str = "elu"
-    log_std: float = -1.6
-    learn_log_std: bool = False
-
-
-@dataclass
-class ExpertConfig:
-    seed: int = 0
-    iterations: int = 1000
-    w_im: float = 0.5
-    w_style: float = 0.5
-    save_every: int = 50
-    eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
-    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every training clip)
-    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
-    update_threads: int = 0  # during the PPO and discriminator updates (0: torch_threads)
-    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
-    task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)
-    action: ActionConfig = field(default_factory=ActionConfig)
-    ppo: PPOConfig = field(default_factory=PPOConfig)
-    net: NetConfig = field(default_factory=NetConfig)
-    amp: AMPConfig = field(default_factory=AMPConfig)
-    sampling: SamplingConfig = field(default_factory=SamplingConfig)
-
-
-def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:
-    pol = EncoderDecoderPolicy(obs_dim, goal_dim, action_dim, n.latent_dim, tuple(n.encoder), tuple(n.decoder),
-                               n.activation, n.log_std, n.learn_log_std)
-    return ActorCritic(RunningNorm(obs_dim + goal_dim), pol, ValueNet(obs_dim + goal_dim, tuple(n.value), n.activation))
 
 
 def imitation_mdp(hum: Humanoid, lib: ReferenceLibrary, sim: SimConfig, task: ImitationTaskConfig,
@@ -152,9 +107,9 @@ class ExpertTrainer:
         return rs
 
     def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
-        self.ac.load_state_dict(split_state(model, "ac."))
+        self.ac.load_state_dict(runs.split_state(model, "ac."))
         if self.amp is not None:
-            self.amp.disc.load_state_dict(split_state(model, "disc."))
+            self.amp.disc.load_state_dict(runs.split_state(model, "disc."))
         if shared is None:
             return
         runner.load_counters(self, shared)
@@ -177,7 +132,7 @@ class ExpertTrainer:
         t0 = time.perf_counter()
         ro, last_value, stats = self.collector.collect()
         t1 = time.perf_counter()
-        with runner.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
+        with runs.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
             stats.update(self.collector.update_hooks())
             stats.update(self.ppo.update(ro, last_value, self.iteration))
         runner.finish_step(self, stats, t0, t1)
@@ -216,10 +171,6 @@ class ExpertTrainer:
                 "clips": list(self.lib.names)}
 
 
-def split_state(state: dict, prefix: str) -> dict:
-    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-
-
 def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resume: bool = False,
           until: int | None = None, data=None, command: str | None = None, init=None) -> dict:
     """Train (or resume) an expert into ``run``; stops after ``until`` iterations if given.
@@ -235,10 +186,10 @@ def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resum
 
     start, extra = None, {}
     if init is not None:
-        meta, start, ihum = runner.load_run(init, KIND)
-        if runner.mjcf_hash(ihum) != runner.mjcf_hash(hum):
+        meta, start, ihum = runs.load_run(init, KIND)
+        if runs.mjcf_hash(ihum) != runs.mjcf_hash(hum):
             raise UserError(f"--init {init}: that expert was trained on another humanoid (MJCF hash differs)")
-        extra = runner.link_record("init", init, KIND)
+        extra = runs.link_record("init", init, KIND)
 
     def make(d: Dist) -> ExpertTrainer:
         tr = ExpertTrainer(cfg, hum, lib, d)
@@ -274,39 +225,3 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
         hum = load_humanoid(humanoid) if humanoid else humanoid_for(data)
     lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips, split))
     return train(cfg, run, hum, lib, resume=resume, until=until, data=data, init=init)
-
-
-def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
-    meta, state, hum = runner.load_run(run, KIND)
-    cfg = from_dict(ExpertConfig, meta["config"])
-    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
-    ex = meta["extra"]
-    ac = build_actor_critic(cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
-    ac.load_state_dict(split_state(state, "ac."))
-    return cfg, hum, ac, meta
-
-
-def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None = None, render=None,
-                 termination: str | None = None, distance: float | None = None, device: str | None = None) -> dict:
-    """``motok control expert eval``: :func:`evaluate` the checkpoint in ``run`` on its training
-    clips (or the clips of ``data`` in ``split`` and/or matching the ``clips`` glob), with the
-    summary per content and per style, and write ``RUN/eval.json`` (``RUN/eval_SPLIT.json``) with
-    the checkpoint it measured (iteration, samples, training wall time, MJCF hash) and
-    provenance, so a number quoted from it can be traced to the weights and data that made it."""
-    run = Path(run)
-    cfg, hum, ac, meta = load_expert(run)
-    if termination is not None:
-        cfg.task.termination = termination
-    if distance is not None:
-        cfg.task.termination_distance = distance
-    cfg.env.on(device)
-    src, lib = runner.run_library(run, meta, hum, cfg.env.control_hz, data, clips, split, hint="; pass --data")
-    res = evaluate(hum, ac, lib, cfg.env, cfg.task, cfg.action, render, batch=cfg.sampling.eval_batch, feet=True)
-    res["groups"] = by_group(res["clips"])
-    res["checkpoint"] = runner.checkpoint_info(meta)
-    prov = Provenance(command=command_line(), config={"run": str(run), "clips": clips, "split": split,
-                                                        "task": asdict(cfg.task)},
-                      inputs=hash_inputs([src]))
-    res = {"kind": "control-expert-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
-    write_json(run / (f"eval_{split}.json" if split else "eval.json"), res)
-    return res

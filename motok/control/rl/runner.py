@@ -17,10 +17,8 @@ bundle with every rank's state.
 
 from __future__ import annotations
 
-import hashlib
 import shutil
 from collections import deque
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -31,7 +29,8 @@ from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.checkpoint import (CheckpointError, MetricsLog, load_bundle, rng_state, save_bundle, set_rng_state,
                               sha256_state)
 from motok.config import to_dict
-from motok.control.ppo import KL_WINDOW, kl_warning
+from motok.control.rl.ppo import KL_WINDOW, kl_warning
+from motok.control.runs import mjcf_hash
 from motok.distributed import Dist, gather, init_distributed, shutdown_distributed
 from motok.sim.humanoid import Humanoid
 
@@ -59,18 +58,6 @@ class Trainer(Protocol):
     def start_segment(self) -> None: ...
 
     def step(self) -> dict: ...
-
-
-@contextmanager
-def torch_threads(n: int):
-    """``n`` torch threads inside the block: on a 2-core machine the rollout wants 1 (MuJoCo's
-    workers have the cores) and the learning steps 2 (the physics is idle then)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(max(1, int(n)))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def counters(tr) -> dict:
@@ -123,69 +110,6 @@ def finish_step(tr, stats: dict, t0: float, t1: float) -> dict:
 def rank_seed(seed: int, rank: int) -> int:
     """Rank 0 keeps ``seed`` (a single-process run is the 1-rank case); others get their own stream."""
     return seed if rank == 0 else seed + 100_003 * rank
-
-
-def mjcf_hash(hum: Humanoid) -> str:
-    return hashlib.sha256(Path(hum.path).read_bytes()).hexdigest()
-
-
-def load_run(run, kind: str) -> tuple[dict, dict, Humanoid]:
-    """``(meta, weights, humanoid)`` of a control run, its ``humanoid.xml`` checked against the hash."""
-    from motok.sim.humanoid import load_humanoid
-
-    run = Path(run)
-    meta, state, _ = load_bundle(run, kind)
-    hum = load_humanoid(run / "humanoid.xml")
-    if mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
-        raise CheckpointError(f"{run}/humanoid.xml does not match the checkpoint's MJCF hash")
-    return meta, state, hum
-
-
-def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: str | None = None,
-                split: str | None = None, hint: str = ": pass --data"):
-    """``(dataset, library)`` to evaluate a run on: its own dataset and clips unless ``data``,
-    ``clips`` (a glob) or ``split`` say otherwise."""
-    from motok.checkpoint import bundle_ref
-    from motok.data.dataset import select_clips
-    from motok.sim.reference import load_library
-
-    src = data or bundle_ref(Path(run), meta, "data", hint=hint)
-    names = select_clips(src, clips, split) if clips or split else meta["extra"]["clips"]
-    return src, load_library(hum, src, control_hz=control_hz, clips=names)
-
-
-def link_record(key: str, linked_run, kind: str) -> dict:
-    """A run this one was made from (a prior's expert, a task policy's prior), for the bundle's
-    metadata: ``key``, a path the bundle stores relative to itself (so the two can move
-    together), and ``KEY_info``: its absolute path (found from anywhere on this machine) and what
-    identifies its weights."""
-    from motok.checkpoint import read_meta
-
-    meta = read_meta(linked_run, kind)
-    ex, path = meta["extra"], Path(linked_run).resolve()
-    return {key: path, f"{key}_info": {"absolute": str(path), "model_sha256": meta.get("model_sha256"),
-                                       "iteration": ex.get("iteration"), "samples": ex.get("samples")}}
-
-
-def linked_path(run, meta: dict, key: str) -> Path:
-    """Where the run linked as ``key`` (:func:`link_record`) is: relative to ``run`` first, then absolute."""
-    from motok.checkpoint import bundle_ref
-
-    found = bundle_ref(run, meta, key, required=False)
-    if found is not None and (found / "bundle.json").exists():
-        return found
-    absolute = Path(meta["extra"][f"{key}_info"]["absolute"])
-    if (absolute / "bundle.json").exists():
-        return absolute
-    raise CheckpointError(f"{run}: its {key} is neither at {meta['extra'].get(key)!r} (from the bundle) "
-                          f"nor at {absolute}")
-
-
-def checkpoint_info(meta: dict) -> dict:
-    """What an evaluation says about the checkpoint it measured."""
-    ex = meta["extra"]
-    return {"iteration": ex["iteration"], "samples": ex["samples"], "wall_s": ex.get("last_metrics", {}).get("wall_s"),
-            "mjcf_sha256": ex["mjcf_sha256"]}
 
 
 class _StopSignal:

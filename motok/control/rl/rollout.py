@@ -1,6 +1,6 @@
 """One rollout collector for every PPO trainer of the control stage.
 
-Per iteration, ``horizon`` steps of every environment of a :class:`~motok.control.tasks.base.TaskEnv`:
+Per iteration, ``horizon`` steps of every environment of a :class:`~motok.control.mdp.task_env.TaskEnv`:
 the policy input ``[s, s~]`` (Eq. 7 and the task's goal) is normalised by the running statistics
 (updated first, as the policy then sees it), an action is drawn, the MDP steps, and a truncated
 episode's final observation is valued *before* its reset so GAE can bootstrap it (PPO trick 4).
@@ -22,9 +22,9 @@ import numpy as np
 import torch
 
 from motok.arrays import xp
-from motok.control.networks import ActorCritic
-from motok.control.ppo import Rollout
-from motok.control.tasks.base import TaskEnv
+from motok.control.rl.networks import ActorCritic
+from motok.control.rl.ppo import Rollout
+from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 
 
@@ -37,7 +37,7 @@ def as_tensor(a) -> torch.Tensor:
 
 
 class RewardHook(Protocol):
-    """A learned reward on transitions, e.g. :class:`motok.control.amp.AMPHook`."""
+    """A learned reward on transitions, e.g. :class:`motok.control.rl.amp.AMPHook`."""
 
     name: str  # logged as this key, e.g. "r_style"
     weight: float

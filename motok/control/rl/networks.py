@@ -3,7 +3,7 @@
 * :class:`RunningNorm`: per-feature running mean and variance (Chan et al.'s parallel update),
   held as buffers so the statistics are saved in the policy's state dict and travel with it.
 * :class:`ValueNet`: an MLP critic on the (normalised) policy input.
-* :class:`ActorCritic`: normaliser + policy (``motok.control.policies``, which own their action
+* :class:`ActorCritic`: normaliser + policy (``motok.control.rl.policies``, which own their action
   distributions) + value, the unit PPO optimises and a checkpoint stores.
 """
 

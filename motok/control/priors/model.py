@@ -5,7 +5,7 @@ posterior-prior-decoder shape, five bottlenecks.
 * prior ``f_theta(s) -> z_p`` (the observation only: what task learning keeps);
 * low-level decoder ``pi_low(s, z_bar) -> a``, the residual PD offsets on the current pose.
 
-Kinds (:data:`KINDS`):
+Kinds (the capability rows of ``motok.control.priors.kinds.KINDS``):
 
 * ``continuous`` (PULSE-style, Eq. 1-2): Gaussian posterior and prior (mean and clamped log-std
   heads), ``z ~ q(z | s, s~)`` by reparameterisation, ``z_bar = z``, ``L_kl = KL(q || p)``.
@@ -34,24 +34,32 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from motok.control.networks import RunningNorm, mlp
+from motok.checkpoint import register_kind
+from motok.config import from_dict
+from motok.control import runs
+from motok.control.mdp.actions import ActionConfig
+from motok.control.priors.kinds import KINDS, Kind
+from motok.control.rl.networks import RunningNorm, mlp
+from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.errors import UserError
 from motok.quantize.base import QuantizerConfig
 from motok.quantize.registry import build_quantizer
+from motok.sim.env import SimConfig
+from motok.sim.humanoid import Humanoid
 
-KINDS = ("continuous", "discrete", "discrete+", "hybrid", "hybrid-vq")
-WITH_PRIOR = ("continuous", "hybrid", "hybrid-vq")
-RESIDUAL = ("discrete+", "hybrid")  # residual VQ: several codebooks, decodable with the first M
+KIND = "control-prior"
+register_kind(KIND, (1,))
+
 
 
 @dataclass
 class PriorConfig:
     kind: str = ""  # one of KINDS; `motok control distill --prior` sets it
     latent_dim: int = 64
-    posterior_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    prior_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "elu"
+    posterior_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_phi(s, s~) -> z
+    prior_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_theta(s) -> z_p
+    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of pi_low(s, z_bar) -> a
+    activation: str = "elu"  # relu | elu | tanh | silu
     log_std_min: float = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
     log_std_max: float = 1.0
     num_codebooks: int = 8  # discrete+ and hybrid: residual codebooks
@@ -97,30 +105,31 @@ def squared_norm(x: Tensor) -> Tensor:
 
 
 class LatentPrior(nn.Module):
-    """Normaliser + posterior + prior + quantizer + decoder of one :data:`KINDS` entry.
+    """Normaliser + posterior + prior + quantizer + decoder of one kind (:attr:`caps`, its row of ``KINDS``).
 
     Inputs of :meth:`forward` are ``[s, s~]`` rows already normalised by :attr:`norm` (the
-    student's own :class:`~motok.control.networks.RunningNorm`, saved with the weights)."""
+    student's own :class:`~motok.control.rl.networks.RunningNorm`, saved with the weights)."""
 
     def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int):
         super().__init__()
         cfg.check()
         self.cfg, self.kind = cfg, cfg.kind
+        self.caps: Kind = KINDS[cfg.kind]
         self.obs_dim, self.goal_dim, self.action_dim = obs_dim, goal_dim, action_dim
         D, act = cfg.latent_dim, cfg.activation
-        gaussian = self.kind == "continuous"
+        gaussian = self.caps.gaussian
         self.norm = RunningNorm(obs_dim + goal_dim)
         # A Gaussian head is one layer giving [mean, log-std]; the others give z itself.
         self.posterior = mlp([obs_dim + goal_dim, *cfg.posterior_hidden, D * (2 if gaussian else 1)], act)
         self.prior = mlp([obs_dim, *cfg.prior_hidden, D * (2 if gaussian else 1)], act) \
-            if self.kind in WITH_PRIOR else None
+            if self.caps.prior_network else None
         self.quantizer = build_quantizer(self.quantizer_config()) if not gaussian else None
         # out_gain 0.01: the student starts near zero offsets, i.e. holding its pose.
         self.decoder = mlp([obs_dim + D, *cfg.decoder_hidden, action_dim], act, out_gain=0.01)
 
     def quantizer_config(self) -> QuantizerConfig:
         c = self.cfg
-        residual = self.kind in RESIDUAL
+        residual = self.caps.residual
         return QuantizerConfig(kind="rvq" if residual else c.quantizer, rvq_base=c.quantizer,
                                codebook_size=c.codebook_size if residual else c.vq_codebook_size,
                                num_codebooks=c.num_codebooks if residual else 1, dim=c.latent_dim, decay=c.decay,
@@ -143,7 +152,7 @@ class LatentPrior(nn.Module):
         if self.prior is None:
             raise UserError(f"the {self.kind} prior has no prior network")
         head = self.prior(s)
-        return self._gaussian(head) if self.kind == "continuous" else (head, None)
+        return self._gaussian(head) if self.caps.gaussian else (head, None)
 
     def decode(self, s: Tensor, z_bar: Tensor) -> Tensor:
         """``a = pi_low(s, z_bar)``: the low-level policy, from normalised ``s`` and a latent."""
@@ -170,7 +179,7 @@ class LatentPrior(nn.Module):
         zero = xn.new_zeros(())
         losses = {"commit": zero, "codebook": zero, "mm": zero, "kl": zero}
         head = self.posterior(xn)
-        if self.kind == "continuous":
+        if self.caps.gaussian:
             mu_q, log_std_q = self._gaussian(head)
             mu_p, log_std_p = self.prior_latent(s)
             z = mu_q + torch.exp(log_std_q) * torch.randn_like(mu_q) if sample else mu_q  # Eq. 1, reparameterised
@@ -203,7 +212,7 @@ class LatentPrior(nn.Module):
     @torch.no_grad()
     def offset_to_latent(self, s: Tensor, u: Tensor) -> Tensor:
         """Continuous task learning: ``z = mu_p(s) + u``, an offset from the prior's mean."""
-        if self.kind != "continuous":
+        if not self.caps.gaussian:
             raise UserError(f"offset_to_latent is for the continuous prior, not {self.kind!r}")
         return self.prior_latent(s)[0] + u
 
@@ -214,3 +223,59 @@ class LatentPrior(nn.Module):
                 "num_codebooks": self.num_codebooks, "codebook_size": q.codebook_size if q is not None else 0,
                 "posterior_hidden": list(self.cfg.posterior_hidden), "prior_hidden": list(self.cfg.prior_hidden),
                 "decoder_hidden": list(self.cfg.decoder_hidden)}
+
+
+@dataclass
+class WeightSchedule:
+    start: float = 0.0  # the weight at iteration 0
+    end: float = 0.0  # the weight once the ramp is over
+    ramp: float = 0.125  # share of the iterations over which the weight moves linearly from start to end
+
+    def at(self, iteration: int, total: int) -> float:
+        n = self.ramp * total
+        return self.end if n <= 0 else self.start + (self.end - self.start) * min(iteration / n, 1.0)
+
+
+@dataclass
+class LossConfig:
+    action: float = 10.0  # weight of ||a - a_label||^2
+    commit: float = 1.0  # beta
+    reg: float | None = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
+    mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
+    kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
+
+
+@dataclass
+class DistillConfig:
+    seed: int = 0  # the student's weights, task draws, minibatches
+    iterations: int = 3000  # DAgger iterations (each: horizon steps of every environment, then epochs of Eq. 6)
+    save_every: int = 50  # iterations between checkpoints (every one resumes exactly)
+    eval_every: int = 0  # iterations between imitation evaluations of the student, logged as eval_*
+    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every clip)
+    eval_batch: int = 256
+    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
+    update_threads: int = 0  # during the supervised update, while the physics is idle (0: torch_threads)
+    horizon: int = 32  # steps per environment per iteration
+    epochs: int = 4  # passes over each iteration's data
+    minibatch_size: int = 1024  # samples; rounded down to whole environment columns of `horizon` steps
+    lr: float = 2e-4  # the authors' distillation learning rate
+    max_grad_norm: float = 1.0
+    action_noise: float = 0.055  # std of the noise on the student's actions while collecting (rad)
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
+    # the imitation task; goal_frames must be the expert's
+    task: ImitationTaskConfig = field(default_factory=lambda: ImitationTaskConfig(termination="mean"))
+    # the student's action map: residual on the current pose
+    action: ActionConfig = field(default_factory=lambda: ActionConfig("current"))
+    prior: PriorConfig = field(default_factory=PriorConfig)  # the prior's kind and sizes
+    loss: LossConfig = field(default_factory=LossConfig)  # Eq. 6's weights
+
+
+def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
+    """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""
+    meta, state, hum = runs.load_run(run, KIND)
+    cfg = from_dict(DistillConfig, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
+    ex = meta["extra"]
+    model = LatentPrior(cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
+    model.load_state_dict(runs.split_state(state, "model."))
+    return cfg, hum, model.eval(), meta

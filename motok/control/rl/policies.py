@@ -26,7 +26,7 @@ import torch
 from torch import nn
 from torch.distributions import Normal
 
-from motok.control.networks import mlp
+from motok.control.rl.networks import mlp
 
 
 class GaussianPolicy(nn.Module):

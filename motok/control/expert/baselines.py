@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from motok.control.tasks.base import TaskEnv
+from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid

@@ -25,24 +25,24 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from motok.control.networks import mlp
-from motok.control.ppo import average_gradients, world_size
+from motok.control.rl.networks import mlp
+from motok.control.rl.ppo import average_gradients, world_size
 from motok.sim.obs import Bodies, observation
 
 
 @dataclass
 class AMPConfig:
-    enabled: bool = True
-    hidden: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "relu"
-    lr: float = 1e-4
-    weight_decay: float = 1e-4
-    grad_penalty: float = 5.0
+    enabled: bool = True  # false: no discriminator and no style reward
+    hidden: list[int] = field(default_factory=lambda: [256, 256])  # the discriminator's hidden sizes
+    activation: str = "relu"  # relu | elu | tanh | silu
+    lr: float = 1e-4  # the discriminator's Adam learning rate
+    weight_decay: float = 1e-4  # L2 on the discriminator's weights
+    grad_penalty: float = 5.0  # w_gp of the zero-centred gradient penalty on reference inputs
     logit_reg: float = 0.01  # L2 on the last layer's weights: keeps logits from saturating
     batch_size: int = 512
     updates: int = 8  # discriminator minibatches per PPO iteration
     replay_size: int = 100_000
-    style_scale: float = 5.0
+    style_scale: float = 5.0  # r_style = -style_scale log(1 - D)
 
 
 def gradient_penalty(logit_fn, x_ref: torch.Tensor) -> torch.Tensor:

@@ -1,12 +1,15 @@
-"""Evaluation of the in-betweening and HMD-tracking policies (hybrid-latent paper, Tables 2 and 3).
+"""The episode-evaluation loop every task's evaluation shares, and the error sums of the tasks
+that follow a reference (in-betweening, HMD tracking: the hybrid-latent paper's Tables 2 and 3).
 
 ``act(obs, goal) -> actions`` (numpy, every environment at once) runs on the ``mdp`` from fresh
-episodes (the task's generator draws the windows and keyframes) until ``episodes`` have ended, a
-fixed share per environment (``nav_eval.episode_quota``: stopping at the first ``episodes`` to end
-would over-count short, failed ones).
+episodes (the task's generator draws the starts, targets, windows or commands) until ``episodes``
+have ended, a fixed share per environment (:func:`episode_quota`: stopping at the first
+``episodes`` to end would over-count short, failed ones). :func:`play_episodes` is that loop; a
+task's evaluation says what it counts after each step and after each reset.
 
-Every episode plays its whole window or trajectory: early termination is off while evaluating, as
-in the fork's test mode. With it on, a failed episode would count only the frames before it
+**Reference errors** (:func:`reference_errors`). Every episode plays its whole window or
+trajectory: early termination is off while evaluating (:func:`whole_episodes`), as in the
+authors' fork's test mode. With it on, a failed episode would count only the frames before it
 failed, where the errors are small by construction, and the keyframe columns would leave out the
 episodes that failed before their first target keyframe: the policies that fail more would look
 closer. An episode **succeeds** when the task's failure test (``info["off_track"]``: the mean body
@@ -18,11 +21,11 @@ Per episode, over all its frames (the start state included), the errors of the f
 ``compute_metrics_lite`` (PHC's evaluation, all bodies): **MPJPE** (root-relative) and
 **G-MPJPE** (global) in mm, **velocity** (mm/frame) and **acceleration** (mm/frame^2) errors of
 the global body positions (first and second differences ending at each frame), with the helpers
-of ``motok.eval.metrics``. ``motok.control.evaluate`` reports the root's velocity and acceleration
-errors instead. In-betweening also reports them at the target keyframes only (``keyframe_*``: the
-frames of keyframes 2..K; the start keyframe is the initial state, which the fork's keyframe
-metrics include). HMD also reports the head's global error and the share of frames with the head
-within the termination distance (the fork's "success rate").
+of ``motok.eval.metrics``. The imitation task's evaluation (``tasks.imitation``) reports the
+root's velocity and acceleration errors instead. In-betweening also reports them at the target
+keyframes only (``keyframe_*``: the frames of keyframes 2..K; the start keyframe is the initial
+state, which the fork's keyframe metrics include). HMD also reports the head's global error and
+the share of frames with the head within the termination distance (the fork's "success rate").
 Results: ``<metric>_mean`` / ``<metric>_std`` over episodes (population std; NaN-free episodes
 only), ``success_rate``, ``seconds_mean`` and the per-episode values under ``per_episode``.
 """
@@ -30,20 +33,67 @@ only), ``success_rate``, ``seconds_mean`` and the per-episode values under ``per
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from motok.control.nav_eval import episode_quota
-from motok.control.tasks.base import TaskEnv
-from motok.control.tasks.hmd import HMDTask
-from motok.control.tasks.inbetween import InbetweenTask
+from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 from motok.eval.metrics import acceleration_error, mpjpe, velocity_error
 
 METRICS = ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm")
 
 Act = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def episode_quota(episodes: int, num_envs: int) -> np.ndarray:
+    """Episodes each environment contributes, ``episodes`` in all. A fixed share per environment,
+    not the first ``episodes`` to end: those would over-count short (fallen) episodes."""
+    return episodes // num_envs + (np.arange(num_envs) < episodes % num_envs)
+
+
+@dataclass
+class Step:
+    """One control step of every environment, as :func:`play_episodes` hands it to a task's count."""
+
+    rewards: dict
+    terminated: np.ndarray
+    truncated: np.ndarray
+    info: dict
+    live: np.ndarray  # (N,) the step belongs to an episode that counts
+    ended: np.ndarray  # ids of the environments whose episode ended at this step
+    counted: np.ndarray  # the ended ids whose episode counts (the live ones)
+
+
+def play_episodes(mdp: TaskEnv, act: Act, episodes: int, on_step: Callable[[Step], None],
+                  on_reset: Callable[[np.ndarray, np.ndarray], None] | None = None) -> None:
+    """Reset every environment, then step ``act`` until each has ended its quota of episodes.
+    ``on_step(step)`` sees every step before the ended environments restart; ``on_reset(ids,
+    fresh)`` sees the environments ``ids`` just reset (all of them at the start), ``fresh`` the
+    ``(N,)`` mask of those whose new episode counts."""
+    if int(episodes) < 1:
+        raise UserError(f"episodes must be >= 1, got {episodes}")
+    N = mdp.num_envs
+    quota = episode_quota(int(episodes), N)
+    done = np.zeros(N, dtype=np.int64)
+    obs, goal = mdp.reset()
+    if on_reset is not None:
+        on_reset(np.arange(N), done < quota)
+    while (done < quota).any():
+        live = done < quota
+        obs, goal, rewards, term, trunc, info = mdp.step(act(obs, goal))
+        ended = np.flatnonzero(term | trunc)
+        counted = ended[live[ended]]
+        on_step(Step(rewards, term, trunc, info, live, ended, counted))
+        if not len(ended):
+            continue
+        done[counted] += 1
+        obs, goal = mdp.reset(ended)
+        if on_reset is not None:
+            fresh = np.zeros(N, bool)
+            fresh[ended] = done[ended] < quota[ended]
+            on_reset(ended, fresh)
 
 
 class EpisodeErrors:
@@ -93,7 +143,7 @@ class EpisodeErrors:
         return np.where(c > 0, self.sum[ids] / np.maximum(c, 1), np.nan)
 
 
-def _summary(names: list[str], rows: np.ndarray, success: np.ndarray, seconds: np.ndarray) -> dict:
+def summary(names: list[str], rows: np.ndarray, success: np.ndarray, seconds: np.ndarray) -> dict:
     out = {"episodes": int(len(success)), "success_rate": float(success.mean()),
            "seconds_mean": float(seconds.mean())}
     for j, k in enumerate(names):
@@ -105,43 +155,34 @@ def _summary(names: list[str], rows: np.ndarray, success: np.ndarray, seconds: n
     return out
 
 
-def _run(mdp: TaskEnv, act: Act, episodes: int, acc: EpisodeErrors) -> dict:
-    if int(episodes) < 1:
-        raise UserError(f"episodes must be >= 1, got {episodes}")
+def reference_errors(mdp: TaskEnv, act: Act, episodes: int, acc: EpisodeErrors) -> dict:
+    """``episodes`` whole episodes of a task that follows a reference (its ``clip`` and ``frame``),
+    with the errors of ``acc`` (the module docstring)."""
     task, env, lib = mdp.task, mdp.env, mdp.task.lib
-    N = mdp.num_envs
-    quota = episode_quota(int(episodes), N)
-    done = np.zeros(N, dtype=np.int64)
     rows, success, seconds = [], [], []
+    off_at = np.zeros(mdp.num_envs, dtype=np.int64)  # the step the failure test first fired, 0: not yet
 
     def ref_pos():
         return lib.body_pos[lib.frame_index(task.clip, task.frame)]
 
-    off_at = np.zeros(N, dtype=np.int64)  # the step the failure test first fired in the episode, 0: not yet
-    obs, goal = mdp.reset()
-    acc.clear(slice(None))
-    acc.record(env.bodies.pos, ref_pos(), done < quota)
-    while (done < quota).any():
-        live = done < quota
-        obs, goal, _, term, trunc, info = mdp.step(act(obs, goal))
-        acc.record(env.bodies.pos, ref_pos(), live, info.get("at_keyframe"))
-        steps = np.asarray(info["episode_steps"])
-        off_at = np.where((off_at == 0) & np.asarray(info["off_track"]), steps, off_at)
-        ended = np.flatnonzero(term | trunc)
-        if not len(ended):
-            continue
-        counted = ended[live[ended]]
-        rows.append(acc.means(counted))
-        success.append(trunc[counted] & (off_at[counted] == 0))  # term: a diverged simulation or invalid action
-        seconds.append(np.where(off_at[counted] > 0, off_at[counted], steps[counted]) * env.dt)
-        done[counted] += 1
-        obs, goal = mdp.reset(ended)
-        acc.clear(ended)
-        off_at[ended] = 0
-        fresh = np.zeros(N, bool)
-        fresh[ended] = done[ended] < quota[ended]
+    def on_step(s: Step) -> None:
+        nonlocal off_at
+        acc.record(env.bodies.pos, ref_pos(), s.live, s.info.get("at_keyframe"))
+        steps = np.asarray(s.info["episode_steps"])
+        off_at = np.where((off_at == 0) & np.asarray(s.info["off_track"]), steps, off_at)
+        c = s.counted
+        if len(s.ended):
+            rows.append(acc.means(c))
+            success.append(s.truncated[c] & (off_at[c] == 0))  # terminated: a diverged simulation or invalid action
+            seconds.append(np.where(off_at[c] > 0, off_at[c], steps[c]) * env.dt)
+
+    def on_reset(ids, fresh) -> None:
+        acc.clear(ids)
+        off_at[ids] = 0
         acc.record(env.bodies.pos, ref_pos(), fresh)
-    return _summary(acc.names, np.concatenate(rows), np.concatenate(success), np.concatenate(seconds))
+
+    play_episodes(mdp, act, episodes, on_step, on_reset)
+    return summary(acc.names, np.concatenate(rows), np.concatenate(success), np.concatenate(seconds))
 
 
 @contextmanager
@@ -153,36 +194,3 @@ def whole_episodes(task):
         yield
     finally:
         task.cfg.early_termination = before
-
-
-def evaluate_inbetween(mdp: TaskEnv, act: Act, episodes: int) -> dict:
-    """Table 2 protocol: ``episodes`` 4 s windows with ``cfg.eval_keyframes`` keyframes each (5,
-    where training uses 4), played to their end, errors over all frames and at the target
-    keyframes. The task's keyframe count and early termination are restored afterwards and every
-    environment reset."""
-    task = mdp.task
-    if not isinstance(task, InbetweenTask):
-        raise UserError(f"evaluate_inbetween needs a TaskEnv around an InbetweenTask, got {type(task).__name__}")
-    before = task.num_keyframes
-    task.set_keyframe_count(task.cfg.eval_keyframes)
-    try:
-        with whole_episodes(task):
-            out = _run(mdp, act, episodes, EpisodeErrors(mdp.num_envs))
-    finally:
-        task.set_keyframe_count(before)
-        mdp.reset()
-    return {"keyframes_per_window": int(task.cfg.eval_keyframes), **out}
-
-
-def evaluate_hmd(mdp: TaskEnv, act: Act, episodes: int) -> dict:
-    """Table 3 protocol: ``episodes`` 5 s head trajectories, played to their end, full-body errors
-    over all frames plus the head's own error and the share of frames it stayed within the
-    termination distance. Early termination is restored afterwards."""
-    task = mdp.task
-    if not isinstance(task, HMDTask):
-        raise UserError(f"evaluate_hmd needs a TaskEnv around an HMDTask, got {type(task).__name__}")
-    with whole_episodes(task):
-        out = _run(mdp, act, episodes, EpisodeErrors(mdp.num_envs, head=task.head,
-                                                     within=task.cfg.termination_distance))
-    return {k: v for k, v in out.items() if not k.startswith("keyframe_")} | \
-        {"per_episode": {k: v for k, v in out["per_episode"].items() if not k.startswith("keyframe_")}}

@@ -21,10 +21,10 @@ import torch
 
 from motok.arrays import xp
 from motok.control.mdp.actions import ActionConfig, pd_targets
-from motok.control.networks import ActorCritic
-from motok.control.priors import LatentPrior, squared_norm
-from motok.control.rollout import Episodes, as_tensor
-from motok.control.tasks.base import TaskEnv
+from motok.control.mdp.task_env import TaskEnv
+from motok.control.priors.model import LatentPrior, squared_norm
+from motok.control.rl.networks import ActorCritic
+from motok.control.rl.rollout import Episodes, as_tensor
 from motok.quantize.base import code_stats
 
 
@@ -50,28 +50,6 @@ class DaggerBatch:
     @property
     def done(self) -> torch.Tensor:
         return self.terminated | self.truncated
-
-
-class StudentPolicy:
-    """The student as :func:`motok.control.evaluate.evaluate` expects an actor-critic:
-    ``act(x_raw, deterministic) -> (xn, a, logp, v)`` (``logp`` and ``v`` are zeros). Evaluation
-    runs the model in eval mode, so no codebook changes and, deterministic, no random draws;
-    ``num_codebooks`` decodes with the first M codebooks only."""
-
-    def __init__(self, model: LatentPrior, num_codebooks: int | None = None):
-        self.model, self.num_codebooks = model, num_codebooks
-
-    def parameters(self):
-        return self.model.parameters()
-
-    @torch.no_grad()
-    def act(self, x: torch.Tensor, deterministic: bool = True):
-        m = self.model
-        m.eval()
-        xn = m.norm(x)
-        a = m(xn, self.num_codebooks, sample=not deterministic).action
-        zero = torch.zeros(len(x), device=x.device)
-        return xn, a, zero, zero
 
 
 def code_usage(indices: torch.Tensor, codebook_size: int) -> dict[str, float]:

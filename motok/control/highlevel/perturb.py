@@ -10,13 +10,13 @@ while a policy does its task, a ball (10 cm radius, 4.2 kg) is thrown at the cha
   later (the paper's "recovered"; with a task whose fall ends the episode, as navigation's, that
   is "not fallen within 3 s": a fallen character cannot get up again). A hit whose episode is
   *terminated* within the window, by a fall or a failure, is not recovered. A hit less than 3 s
-  before the episode's time limit (the task's ``limit`` or ``max_steps``) is **censored**,
+  before the episode's time limit (the task's ``step_limit()``) is **censored**,
   whatever follows it: only its falls could be seen, so counting them would bias the rate low;
   so is one whose run ends within the window;
 * the task's own measures: episodes ended by truncation rather than termination (``success``,
   motok's usual meaning), the main reward per step, and for tasks that report
   ``target_ends``/``target_reached`` (navigation) the share of targets reached, counted as
-  :func:`motok.control.nav_eval.evaluate_navigation` counts them.
+  :func:`motok.control.tasks.navigation.evaluate_navigation` counts them.
 
 The MDP's humanoid must be a ball model (:func:`motok.sim.balls.build_ball_model`); its reference
 library can stay the plain humanoid's (same body, same humanoid state). The pool holds
@@ -32,8 +32,8 @@ from typing import Callable
 
 import numpy as np
 
-from motok.control.nav_eval import episode_quota
-from motok.control.tasks.base import TaskEnv
+from motok.control.tasks.episodes import episode_quota
+from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 from motok.sim.balls import ball_states, detect_hits, find_balls, humanoid_capsules, launch_balls, park_balls, set_balls
 
@@ -71,12 +71,8 @@ class PerturbConfig:
 
 
 def time_limit(task, n: int) -> np.ndarray:
-    """``(n,)`` each environment's episode length in control steps: the task's ``limit`` (per
-    environment, set at its reset) or ``max_steps``; unbounded for a task with neither."""
-    lim = getattr(task, "limit", getattr(task, "max_steps", None))
-    if lim is None:
-        return np.full(n, np.iinfo(np.int64).max)
-    return np.broadcast_to(np.asarray(lim, dtype=np.int64), (n,))
+    """``(n,)`` each environment's episode length in control steps (the task's ``step_limit()``)."""
+    return np.broadcast_to(np.asarray(task.step_limit(), dtype=np.int64), (n,))
 
 
 @dataclass
@@ -166,11 +162,11 @@ def perturb(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], e
     obs, goal = mdp.reset()
     park_balls(env, pool, np.arange(N))  # all of the model's, then use the first K
     pool = pool.first(K)
-    markers = getattr(mdp.task, "markers", None)
 
     def keep():
         if record is not None and done[0] == 0:
-            record.append((env.stepper.qpos[0].copy(), markers()[0] if markers is not None else None))
+            m = mdp.task.markers()
+            record.append((env.stepper.qpos[0].copy(), m[0] if m is not None else None))
 
     keep()
     while (done < quota).any():
@@ -252,8 +248,9 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
 
     from motok.artifacts import Provenance, command_line
     from motok.atomic import write_json
-    from motok.control import runner
-    from motok.control.task_train import load_task_run, policy_fn, task_mdp
+    from motok.control import runs
+    from motok.control.highlevel.evaluate import policy_fn
+    from motok.control.highlevel.policy import load_task_run, task_mdp
     from motok.sim.balls import build_ball_model
     from motok.sim.env import SimConfig
     from motok.sim.humanoid import load_humanoid
@@ -261,21 +258,21 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
     run = Path(run)
     cfg = replace(cfg or PerturbConfig(), seed=seed)
     tcfg, hum, ac, model, scale, meta = load_task_run(run)
-    _, lib = runner.run_library(run, meta, hum, tcfg.env.control_hz)
+    _, lib = runs.run_library(run, meta, hum, tcfg.env.control_hz)
     balls = load_humanoid(build_ball_model(hum, run / "humanoid_balls.xml", cfg.pool, cfg.radius, cfg.mass))
     sim = SimConfig(**{**asdict(tcfg.env), "num_envs": max(1, min(int(episodes), tcfg.env.num_envs))})
     mdp = task_mdp(tcfg, balls, lib, model, scale, seed, sim)
     frames: list = [] if render is not None else None
     res = {"kind": "control-perturb", "schema_version": 1, "task": tcfg.task,
            **perturb(mdp, policy_fn(ac, tcfg.deterministic_eval), episodes, cfg, frames),
-           "config": asdict(cfg), "checkpoint": runner.checkpoint_info(meta)}
+           "config": asdict(cfg), "checkpoint": runs.checkpoint_info(meta)}
     if render is not None:
         from motok.sim.render import render_trajectory
         marks = [m for _, m in frames]
         path, backend = render_trajectory(balls, np.stack([q for q, _ in frames]), render, mdp.env.control_hz,
                                           title=f"{tcfg.task}, balls every {cfg.period:g} s",
                                           markers=np.stack(marks) if marks[0] is not None else None,
-                                          marker_radius=getattr(mdp.task, "marker_radius", 0.12))
+                                          marker_radius=mdp.task.marker_radius)
         res["video"] = f"{path} ({backend})"
     res["provenance"] = json.loads(Provenance(command=command_line(), config={"run": str(run), "episodes": episodes,
                                                                              "seed": seed}).to_json())

@@ -12,7 +12,7 @@ proprioception ``s`` (Eq. 7) and the task goal ``g`` and chooses the latent:
   paper's Fig. 4 right shows the result depends on it), ``z = mu_p(s) + u`` (Eq. 2's prior mean).
 
 The environment sees the decoder's action: :class:`LatentActionMap` is the action map of
-``motok.control.tasks.base.TaskEnv`` that turns the high-level action into PD targets on the
+``motok.control.mdp.task_env.TaskEnv`` that turns the high-level action into PD targets on the
 current pose (``q_hat = q + scale pi_low(s, z_bar)``, how the prior was distilled). PPO optimises
 the high-level policy only; the prior's weights never receive a gradient (they are not in the
 optimiser, and the map runs under ``no_grad``).
@@ -22,23 +22,36 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from motok.control.generate import check_codebooks
+from motok.checkpoint import register_kind
+from motok.config import from_dict
+from motok.control import runs
 from motok.control.mdp.actions import residual_targets
-from motok.control.networks import ActorCritic, RunningNorm, ValueNet
-from motok.control.policies import MLPPolicy, MultiCategoricalPolicy
-from motok.control.priors import LatentPrior
+from motok.control.mdp.task_env import TaskEnv
+from motok.control.priors.load import check_codebooks
+from motok.control.priors.model import LatentPrior, load_prior
+from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
+from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
+from motok.control.rl.ppo import PPOConfig
+from motok.control.tasks import registry
 from motok.errors import UserError
+from motok.sim.env import HumanoidEnv, SimConfig
+from motok.sim.humanoid import Humanoid
+from motok.sim.reference import ReferenceLibrary
+
+KIND = "control-task"
+register_kind(KIND, (1,))
 
 
 @dataclass
 class HighLevelNetConfig:
-    policy: list[int] = field(default_factory=lambda: [256, 256])
-    value: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "elu"
+    policy: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of the high-level policy's MLP
+    value: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of the critic's MLP
+    activation: str = "elu"  # relu | elu | tanh | silu
     std: float = 0.2  # continuous prior: exploration std of the offset u (fixed, as in the paper)
 
 
@@ -94,3 +107,57 @@ def build_high_level(net: HighLevelNetConfig, model: LatentPrior, obs_dim: int, 
     else:
         pol = MultiCategoricalPolicy(d, space["codebooks"], space["codes"], tuple(net.policy), net.activation)
     return ActorCritic(RunningNorm(d), pol, ValueNet(d, tuple(net.value), net.activation))
+
+
+def paper_ppo() -> PPOConfig:
+    """Tables 6-8: clip 0.1, lr 5e-5, horizon 16, gamma 0.99, lambda 0.95."""
+    return PPOConfig(horizon=16, epochs=6, minibatch_size=1024, gamma=0.99, lam=0.95, clip=0.1, lr=5e-5,
+                     entropy_coef=0.01, max_grad_norm=1.0)
+
+
+@dataclass
+class TaskTrainConfig:
+    seed: int = 0  # networks, task draws and minibatches
+    iterations: int = 2000  # PPO iterations (each: ppo.horizon steps of every environment, then the update)
+    task: str = "navigation"  # one of motok.control.tasks.registry.names()
+    codebooks: int | None = None  # active codebooks M of a residual prior (None: all)
+    save_every: int = 50
+    eval_every: int = 0  # iterations between task evaluations logged as eval_* (0: never)
+    eval_episodes: int = 64
+    deterministic_eval: bool = True  # evaluate with the most likely action (argmax codes, the mean offset)
+    torch_threads: int = 1  # during rollouts: MuJoCo has the cores
+    update_threads: int = 0  # during the PPO update (0: torch_threads)
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
+    tasks: registry.TaskConfigs = field(default_factory=registry.TaskConfigs)  # every task's settings: tasks.NAME.FIELD
+    ppo: PPOConfig = field(default_factory=paper_ppo)  # the update (Tables 6-8's values by default)
+    net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)  # the high-level policy and critic
+
+    def check(self) -> None:
+        registry.check(self.task)
+
+
+def task_mdp(cfg: TaskTrainConfig, hum: Humanoid, lib: ReferenceLibrary, model: LatentPrior, scale: float,
+             seed: int, sim: SimConfig | None = None) -> TaskEnv:
+    """Physics + the task + the frozen prior's decoder as the action map."""
+    env = HumanoidEnv(hum, sim or cfg.env)
+    if env.on_device:  # the library, the episode state and the draws where the physics is
+        lib, rng = lib.to(env.torch_device), torch.Generator(device=env.torch_device).manual_seed(seed)
+    else:
+        rng = np.random.default_rng(seed)
+    task = registry.make(cfg.task, cfg.tasks, env, lib, rng)
+    return TaskEnv(env, task, LatentActionMap(model, check_codebooks(model, cfg.codebooks), scale))
+
+
+def load_task_run(run) -> tuple[TaskTrainConfig, Humanoid, ActorCritic, LatentPrior, float, dict]:
+    """``(cfg, humanoid, high-level actor-critic, frozen prior, prior action scale, meta)``."""
+    run = Path(run)
+    meta, state, hum = runs.load_run(run, KIND)
+    cfg = from_dict(TaskTrainConfig, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
+    pcfg, phum, model, _ = load_prior(runs.linked_path(run, meta, "prior"))
+    if runs.mjcf_hash(phum) != meta["extra"]["mjcf_sha256"]:
+        raise UserError(f"{run}: its prior now has another humanoid than the one the policy was trained on")
+    ex = meta["extra"]
+    ac = build_high_level(cfg.net, model, ex["obs_dim"], ex["goal_dim"], cfg.codebooks)
+    ac.load_state_dict(runs.split_state(state, "ac."))
+    return cfg, hum, ac, model, pcfg.action.scale, meta

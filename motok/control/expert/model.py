@@ -1,0 +1,70 @@
+"""The physics expert's recipe and networks (hybrid-latent paper appendix B.2), and the loader
+that rebuilds a trained expert from its bundle (kind ``control-expert``) for the readers that
+drive it: distillation's teacher, tracking, evaluation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from motok.checkpoint import register_kind
+from motok.config import from_dict
+from motok.control import runs
+from motok.control.mdp.actions import ActionConfig
+from motok.control.rl.amp import AMPConfig
+from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
+from motok.control.rl.policies import EncoderDecoderPolicy
+from motok.control.rl.ppo import PPOConfig
+from motok.control.rl.sampling import SamplingConfig
+from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.sim.env import SimConfig
+from motok.sim.humanoid import Humanoid
+
+KIND = "control-expert"
+register_kind(KIND, (1,))
+
+
+@dataclass
+class NetConfig:
+    latent_dim: int = 64  # the encoder's latent z (no bottleneck: a plain vector)
+    encoder: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of E(s, s~) -> z
+    decoder: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of D(s, z) -> a
+    value: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of the critic
+    activation: str = "elu"  # relu | elu | tanh | silu
+    log_std: float = -1.6  # the Gaussian's state-independent log std (rad)
+    learn_log_std: bool = False  # a parameter (learned) rather than a buffer (fixed, PHC's choice)
+
+
+@dataclass
+class ExpertConfig:
+    seed: int = 0  # networks, task draws, minibatches
+    iterations: int = 1000  # PPO iterations (each: ppo.horizon steps of every environment, then the updates)
+    w_im: float = 0.5  # weight of the imitation reward r_im (Eq. 10)
+    w_style: float = 0.5  # weight of AMP's style reward r_style (Eq. 11); 0 also turns AMP off
+    save_every: int = 50  # iterations between checkpoints (every one resumes exactly)
+    eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
+    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every training clip)
+    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
+    update_threads: int = 0  # during the PPO and discriminator updates (0: torch_threads)
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
+    task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)  # the imitation task
+    action: ActionConfig = field(default_factory=ActionConfig)  # the action map (residual PD targets)
+    ppo: PPOConfig = field(default_factory=PPOConfig)  # the PPO update
+    net: NetConfig = field(default_factory=NetConfig)  # the encoder-decoder policy and critic
+    amp: AMPConfig = field(default_factory=AMPConfig)  # the style discriminator
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)  # difficulty-weighted start clips
+
+
+def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:
+    pol = EncoderDecoderPolicy(obs_dim, goal_dim, action_dim, n.latent_dim, tuple(n.encoder), tuple(n.decoder),
+                               n.activation, n.log_std, n.learn_log_std)
+    return ActorCritic(RunningNorm(obs_dim + goal_dim), pol, ValueNet(obs_dim + goal_dim, tuple(n.value), n.activation))
+
+
+def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
+    meta, state, hum = runs.load_run(run, KIND)
+    cfg = from_dict(ExpertConfig, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
+    ex = meta["extra"]
+    ac = build_actor_critic(cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
+    ac.load_state_dict(runs.split_state(state, "ac."))
+    return cfg, hum, ac, meta

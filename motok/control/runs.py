@@ -1,0 +1,94 @@
+"""Run folders of the control stage, for their trainers and their readers alike: a run's bundle
+and humanoid (its MJCF checked against the hash the bundle records), the runs it was made from
+(a prior's expert, a task policy's prior), the clips it was trained on, and what an evaluation
+says about the checkpoint it measured; and the torch threads a phase of a run uses. Nothing here
+trains: loaders, sampling and evaluations read runs through this module, never through a trainer."""
+
+from __future__ import annotations
+
+import hashlib
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+from motok.checkpoint import CheckpointError, load_bundle
+from motok.sim.humanoid import Humanoid, load_humanoid
+
+
+def mjcf_hash(hum: Humanoid) -> str:
+    return hashlib.sha256(Path(hum.path).read_bytes()).hexdigest()
+
+
+def load_run(run, kind: str) -> tuple[dict, dict, Humanoid]:
+    """``(meta, weights, humanoid)`` of a control run, its ``humanoid.xml`` checked against the hash."""
+    run = Path(run)
+    meta, state, _ = load_bundle(run, kind)
+    hum = load_humanoid(run / "humanoid.xml")
+    if mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
+        raise CheckpointError(f"{run}/humanoid.xml does not match the checkpoint's MJCF hash")
+    return meta, state, hum
+
+
+def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: str | None = None,
+                split: str | None = None, hint: str = ": pass --data"):
+    """``(dataset, library)`` to evaluate a run on: its own dataset and clips unless ``data``,
+    ``clips`` (a glob) or ``split`` say otherwise."""
+    from motok.checkpoint import bundle_ref
+    from motok.data.dataset import select_clips
+    from motok.sim.reference import load_library
+
+    src = data or bundle_ref(Path(run), meta, "data", hint=hint)
+    names = select_clips(src, clips, split) if clips or split else meta["extra"]["clips"]
+    return src, load_library(hum, src, control_hz=control_hz, clips=names)
+
+
+def link_record(key: str, linked_run, kind: str) -> dict:
+    """A run this one was made from (a prior's expert, a task policy's prior), for the bundle's
+    metadata: ``key``, a path the bundle stores relative to itself (so the two can move
+    together), and ``KEY_info``: its absolute path (found from anywhere on this machine) and what
+    identifies its weights."""
+    from motok.checkpoint import read_meta
+
+    meta = read_meta(linked_run, kind)
+    ex, path = meta["extra"], Path(linked_run).resolve()
+    return {key: path, f"{key}_info": {"absolute": str(path), "model_sha256": meta.get("model_sha256"),
+                                       "iteration": ex.get("iteration"), "samples": ex.get("samples")}}
+
+
+def linked_path(run, meta: dict, key: str) -> Path:
+    """Where the run linked as ``key`` (:func:`link_record`) is: relative to ``run`` first, then absolute."""
+    from motok.checkpoint import bundle_ref
+
+    found = bundle_ref(run, meta, key, required=False)
+    if found is not None and (found / "bundle.json").exists():
+        return found
+    absolute = Path(meta["extra"][f"{key}_info"]["absolute"])
+    if (absolute / "bundle.json").exists():
+        return absolute
+    raise CheckpointError(f"{run}: its {key} is neither at {meta['extra'].get(key)!r} (from the bundle) "
+                          f"nor at {absolute}")
+
+
+def checkpoint_info(meta: dict) -> dict:
+    """What an evaluation says about the checkpoint it measured."""
+    ex = meta["extra"]
+    return {"iteration": ex["iteration"], "samples": ex["samples"], "wall_s": ex.get("last_metrics", {}).get("wall_s"),
+            "mjcf_sha256": ex["mjcf_sha256"]}
+
+
+def split_state(state: dict, prefix: str) -> dict:
+    """The entries of a bundle's weights under ``prefix`` (``ac.``, ``model.``), without it."""
+    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+
+
+@contextmanager
+def torch_threads(n: int):
+    """``n`` torch threads inside the block: on a 2-core machine the rollout wants 1 (MuJoCo's
+    workers have the cores) and the learning steps 2 (the physics is idle then)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(n)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from motok.cli.main import app
 from motok.data.dataset import MotionFile
-from motok.view.playback import HOLD_SECONDS, Playback, bones, key_action, overlay
+from motok.view.playback import HOLD_SECONDS, FlagGuard, Playback, bones, key_action, overlay
 from motok.view.window import NoWindowError, check_display
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -65,6 +65,21 @@ def test_keys_map_to_actions_and_leave_mujocos_own_alone():
     assert [key_action(k) for k in (32, ord("N"), 262, ord("P"), 263, ord("R"), 259)] == \
         ["pause", "next", "next", "previous", "previous", "restart", "restart"]
     assert key_action(ord("S")) is None and key_action(258) is None  # shadows; Tab (MuJoCo's menus)
+
+
+def test_a_flag_mujoco_flips_on_one_of_our_keys_is_put_back_and_others_stay():
+    g = FlagGuard("base", seconds=0.3)
+    assert g.synced("base", 1.0) is None
+    assert g.synced("R flipped", 1.1) is None  # MuJoCo's flip reached the sync before the key did
+    g.key(1.12)
+    assert g.synced("R flipped", 1.2) == "base" and g.synced("base", 1.3) == "base"
+    assert g.synced("base", 1.5) is None
+    g.key(2.0)  # the key first, MuJoCo's flip at the next sync
+    assert g.synced("P flipped", 2.1) == "base"
+    assert g.synced("base", 2.5) is None and g.synced("S flipped", 3.0) is None  # S is MuJoCo's own
+    assert g.synced("S flipped", 3.5) is None
+    g.key(4.0)
+    assert g.synced("S and R flipped", 4.1) == "S flipped"  # the user's S stays, our R does not
 
 
 def test_ghost_bones_join_each_joint_to_its_parent():

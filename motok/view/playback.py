@@ -77,6 +77,31 @@ class Playback:
         return False
 
 
+class FlagGuard:
+    """Keeps MuJoCo's visual flags from following the viewer's keys: N, P and R are also MuJoCo's
+    shortcuts for flags (islands, contact splits, reflections), which its window flips on the same
+    key press, at the sync just before or just after the one at which the viewer sees the key. So
+    for ``seconds`` after a key the flags are put back as they were two syncs before it. Flags are
+    any values the caller compares and writes back (MuJoCo's scene and option flag arrays)."""
+
+    def __init__(self, flags, seconds: float = 0.3):
+        self.before = self.flags = flags
+        self.seconds, self.until = seconds, float("-inf")
+
+    def key(self, now: float) -> None:
+        """One of the viewer's keys was seen at ``now``."""
+        if now >= self.until:
+            self.flags = self.before
+        self.until = now + self.seconds
+
+    def synced(self, flags, now: float):
+        """The flags the window has after a sync at ``now``: None to keep them, else those to write back."""
+        if now < self.until:
+            return self.flags
+        self.before, self.flags = self.flags, flags
+        return None
+
+
 def bones(pos: np.ndarray, parents) -> tuple[np.ndarray, np.ndarray]:
     """The ghost's bones: ``(from, to)`` world points ``(B, 3)``, one per joint with a parent, from
     the parent's position to the joint's in ``pos`` ``(J, 3)`` (skeleton order)."""

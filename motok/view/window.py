@@ -20,7 +20,7 @@ import numpy as np
 
 from motok import progress
 from motok.errors import UserError
-from motok.view.playback import HELP, Playback, bones, key_action, overlay
+from motok.view.playback import HELP, FlagGuard, Playback, bones, key_action, overlay
 from motok.view.sources import Source
 
 NO_WINDOW = ("run it on a desktop, over ssh -X, or under a virtual display (xvfb-run -a motok view ...); "
@@ -134,6 +134,11 @@ def draw_ghost(scn, pos: np.ndarray | None, parents) -> None:
         scn.ngeom += 1
 
 
+def _flags(viewer) -> tuple[np.ndarray, np.ndarray]:
+    """The window's rendering and visual flags, copied."""
+    return viewer.user_scn.flags.copy(), viewer.opt.flags.copy()
+
+
 def _corners() -> dict:
     import mujoco
 
@@ -179,7 +184,7 @@ def view(source: Source, start: int = 0, seconds: float | None = None, clock=tim
     try:
         _setup(viewer, int(hum.body_ids[0]))
         t0 = pb.start = pb.paused_at = clock()
-        flags = viewer.user_scn.flags.copy(), viewer.opt.flags.copy()
+        guard = FlagGuard(_flags(viewer))
         while viewer.is_running():
             now = clock()
             if seconds is not None and now - t0 >= seconds:
@@ -188,12 +193,12 @@ def view(source: Source, start: int = 0, seconds: float | None = None, clock=tim
                 action = key_action(keys.get())
                 if action is None:
                     continue
-                # N, P and R are also shortcuts of MuJoCo's visual flags: keep them as they were.
-                viewer.user_scn.flags[:], viewer.opt.flags[:] = flags
+                guard.key(now)
                 if pb.press(action, now):
                     shown = source.shown(pb.clip)
                     now = clock()
                     pb.press("restart", now)  # a new clip (a rollout) took time: it starts now
+                    guard.key(now)
                     seen.append(source.names[pb.clip])
             k = pb.frame(now, len(shown.qpos))
             with viewer.lock():
@@ -206,7 +211,10 @@ def view(source: Source, start: int = 0, seconds: float | None = None, clock=tim
             viewer.set_texts([(None, corners[corner], left, right) for corner, left, right in boxes])
             viewer.sync()
             drawn += 1
-            flags = viewer.user_scn.flags.copy(), viewer.opt.flags.copy()
+            restore = guard.synced(_flags(viewer), clock())
+            if restore is not None:  # pushed to the window at the next sync
+                with viewer.lock():
+                    viewer.user_scn.flags[:], viewer.opt.flags[:] = restore
             time.sleep(POLL)
     finally:
         close_viewer(viewer)

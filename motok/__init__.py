@@ -1,3 +1,3 @@
 """motok: learned human motion, from mocap to tokens, text and physics."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -5,8 +5,9 @@ registered later) gets it without doing anything:
 - ``--quiet``/``-q`` is accepted after the subcommand as well as before it;
 - flags are shown as flags in ``--help`` (typer's rich help labels them ``<bool>``);
 - old option spellings keep working for one release as hidden aliases (:func:`renamed`): they
-  are rewritten to the new ones before parsing, with a note on stderr, and never appear in
-  ``--help``, so a short flag has one meaning everywhere.
+  are rewritten to the new ones before parsing, with a note on stderr that names the release
+  they go in (:data:`ALIASES_GO_IN`), and never appear in ``--help``, so a short flag has one
+  meaning everywhere.
 
 The vocabulary itself (docs: README, "The stages"): the main input of a command is ``--data``/
 ``-d`` (a mocap file or folder for ``preprocess``, a motion, motion-dataset or tokens artifact
@@ -26,6 +27,9 @@ from typer.core import TyperGroup
 from motok import progress
 
 ALIASES = "__motok_aliases__"
+# The release that drops the hidden aliases: the spellings of 0.1.0 still work through 0.2.x
+# (README, "The stages"; CHANGELOG 0.2.0).
+ALIASES_GO_IN = "0.3.0"
 
 
 def renamed(positional: str | None = None, **old_to_new: str) -> Callable:
@@ -108,7 +112,7 @@ def _with_aliases(cmd, table, positional):
         rest = parse(ctx, args)
         # After parsing, so a --quiet after the subcommand silences the notes too.
         for old, new in dict(used).items():
-            progress.info(f"[yellow]note:[/] {old} is now {new} (the old spelling works until the next release)")
+            progress.info(f"[yellow]note:[/] {old} is now {new} (the old spelling works until motok {ALIASES_GO_IN})")
         return rest
     return parse_args
 

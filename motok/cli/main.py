@@ -22,6 +22,7 @@ from motok.cli.eval import app as eval_app
 from motok.cli.gpt import app as gpt_app
 from motok.cli.sim import app as sim_app
 from motok.cli.tokenize import app as tokenize_app
+from motok.cli.view import register as register_view
 
 app = typer.Typer(help="motok: learned human motion, from mocap to tokens, text and physics.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False, cls=MotokGroup)
@@ -32,6 +33,7 @@ app.add_typer(gpt_app, name="gpt")
 app.add_typer(sim_app, name="sim")
 app.add_typer(eval_app, name="eval")
 app.add_typer(control_app, name="control")
+register_view(app)
 
 MotionData = data_option("A motion or motion-dataset artifact (.h5).")
 ClipName = typer.Option(..., "--clip", help="Clip name (or index).")

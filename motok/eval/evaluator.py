@@ -14,7 +14,7 @@ content x style) are dropped from the denominator, since they are not wrong matc
   bag of words and word pairs: everything this side knows it learns from the training captions,
   so it is independent of the GPT's frozen ``minilm`` (in Guo et al. and T2M-GPT the evaluator's
   text encoder is not the generator's; a shared one can favour the generator). ``minilm`` (the
-  default of motok <= 0.1) remains an option.
+  default of motok 0.1.0) remains an option.
 - Both embeddings are L2-normalized: Euclidean distance ranks exactly as the cosine the loss
   trains, so the metrics' Euclidean protocol and the training agree.
 """

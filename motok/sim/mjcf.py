@@ -1,6 +1,6 @@
 """The humanoid's MJCF (``motok sim build-humanoid``): :func:`build_humanoid` measures a
-motion-dataset and writes the model; :func:`body_geoms` and :func:`mjcf_text` are the geometry and
-the XML around it.
+motion-dataset (or any motion artifact: ``motok view`` on generated motion) and writes the model;
+:func:`body_geoms` and :func:`mjcf_text` are the geometry and the XML around it.
 
 The builder takes the rest geometry from the data (:func:`motok.sim.retarget.rest_geometry`: the
 dataset's bone lengths, the mocap's own sibling geometry at the hips and chest, feet pitched to lie
@@ -261,7 +261,9 @@ def _moved_mass(model, layout: Layout, skeleton: Skeleton, body_ids: np.ndarray)
 def measure_humanoid(data_path, cfg: HumanoidConfig | None = None) -> HumanoidBody:
     """The slow, data-dependent half of :func:`build_humanoid` (inverse kinematics of the sampled frames)."""
     cfg = cfg or HumanoidConfig()
-    with MotionFile(data_path, "motion-dataset") as mf:
+    # Any motion artifact: a dataset measures the body best (its range of motion sets the joint
+    # ranges), but generated motion has the same skeleton and shows on the body its frames measure.
+    with MotionFile(data_path) as mf:
         skeleton, offsets = mf.skeleton, np.asarray(mf.offsets, dtype=np.float64)
         step = max(1, int(np.ceil(mf.frame_offsets[-1] / cfg.max_frames)))
         clips = [np.asarray(mf.frames("joints", i), dtype=np.float64)[::step] for i in range(len(mf))]
@@ -310,7 +312,8 @@ def humanoid_xml(body: HumanoidBody, cfg: HumanoidConfig | None = None) -> tuple
 
 
 def build_humanoid(data_path, out, cfg: HumanoidConfig | None = None) -> dict:
-    """Write the MJCF for a ``motion-dataset`` artifact; returns a summary (mass, DoF, ranges...)."""
+    """Write the MJCF for a motion artifact (a ``motion-dataset`` for physics); returns a summary
+    (mass, DoF, ranges...)."""
     cfg = cfg or HumanoidConfig()
     body = measure_humanoid(data_path, cfg)
     xml, excludes = humanoid_xml(body, cfg)

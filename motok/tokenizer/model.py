@@ -216,7 +216,7 @@ register_kind(KIND, (1,))
 class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     # init="t2m_gpt": codebooks start as in T2M-GPT's code (uniform for vq, the first batch for
-    # the EMA and reset kinds); "uniform" is the start of motok <= 0.1 for every kind.
+    # the EMA and reset kinds); "uniform" is the start of motok 0.1.0 for every kind.
     quantizer: QuantizerConfig = field(
         default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128, init="t2m_gpt"))
     loss: LossConfig = field(default_factory=LossConfig)

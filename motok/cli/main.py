@@ -94,7 +94,7 @@ def preprocess(
     from motok.data.preprocess import PreprocessConfig
     from motok.data.preprocess import preprocess as _preprocess
 
-    flags = {"inputs": inputs or None, "annotations": annotations, "pattern": clips, "skeleton": skeleton,
+    flags = {"data": inputs or None, "annotations": annotations, "clips": clips, "skeleton": skeleton,
              "fps": fps, "npy_fps": npy_fps, "jobs": jobs, "limit": limit}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["legacy=true"] * legacy + ["skip_bad=true"] * skip_bad
@@ -169,7 +169,7 @@ def export_humanml3d_cmd(
 ):
     """Export a data set as a HumanML3D folder, for T2M-GPT, MoMask and Guo et al.'s evaluator."""
     from motok.data.humanml3d_folder import export_humanml3d
-    summary = run(export_humanml3d, data, out, pattern=clips, stats=stats)
+    summary = run(export_humanml3d, data, out, clips=clips, stats=stats)
     report(summary, as_json, "export humanml3d")
 
 

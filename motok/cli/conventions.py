@@ -8,12 +8,12 @@ registered later) gets it without doing anything:
   are rewritten to the new ones before parsing, with a note on stderr, and never appear in
   ``--help``, so a short flag has one meaning everywhere.
 
-The vocabulary itself (docs: README, "The stages"): the main input of a command is ``--data``/
-``-d`` (a mocap file or folder for ``preprocess``, a motion, motion-dataset or tokens artifact
-elsewhere); models are named by kind (``--tokenizer``/``-t``, ``--gpt``/``-g``,
-``--evaluator``/``-e``, ``--expert``); what a command writes is ``-o``/``--out``; one clip is
-``--clip``, a clip-name glob is ``--clips``; ``info`` and ``plot`` take the file they describe as
-their argument.
+The vocabulary itself is docs/cli.md (its table is what tests/test_cli_vocabulary.py checks every
+command against): the main input of a command is ``--data``/``-d``; models are named by kind
+(``--tokenizer``/``-t``, ``--gpt``/``-g``, ``--evaluator``/``-e``, ``--expert``, ``--prior``,
+``--policy``); what a command exists to make is ``-o``/``--out``, a video beside it ``--render``;
+one clip is ``--clip``, a clip-name glob is ``--clips``; ``info`` and ``plot`` take the file they
+describe as their argument.
 """
 
 from __future__ import annotations

@@ -203,3 +203,14 @@ def test_a_renamed_recipe_key_is_read_with_a_note(tmp_path, capsys):
     preprocess = BY_PATH[("preprocess",)]
     config_opts = {n[2:] for n, _, _ in _options(preprocess)} - {"out", "recipe", "set", "data-root", "json"}
     assert config_opts <= keys, config_opts - keys
+
+
+def test_the_note_comes_before_an_error_about_the_option(tmp_path):
+    from typer.testing import CliRunner
+
+    r = CliRunner().invoke(app, ["control", "perturb", "--run", str(tmp_path / "nope"), "-n", "1"])
+    lines = [" ".join(ln.split()) for ln in r.stderr.strip().splitlines()]
+    assert r.exit_code == 2 and lines[0].startswith("note: --run is now --policy"), r.stderr
+    assert lines[-1] == f"error: {tmp_path / 'nope'}: no such file or directory (--policy)"
+    r = CliRunner().invoke(app, ["control", "perturb", "--run", str(tmp_path / "nope"), "-q"])
+    assert r.exit_code == 2 and "note:" not in r.stderr

@@ -105,11 +105,13 @@ def _with_aliases(cmd, table, positional):
 
     def parse_args(ctx, args):
         args, used = rewrite_args(cmd, list(args), table, positional)
-        rest = parse(ctx, args)
-        # After parsing, so a --quiet after the subcommand silences the notes too.
-        for old, new in dict(used).items():
-            progress.info(f"[yellow]note:[/] {old} is now {new} (the old spelling works until the next release)")
-        return rest
+        # Before parsing, so an error about the option (a missing file) follows the note that
+        # names it; a --quiet after the subcommand is not parsed yet: it is looked for here.
+        options = args[:args.index("--")] if "--" in args else args
+        if not {"-q", "--quiet"} & set(options):
+            for old, new in dict(used).items():
+                progress.info(f"[yellow]note:[/] {old} is now {new} (the old spelling works until the next release)")
+        return parse(ctx, args)
     return parse_args
 
 

@@ -51,8 +51,8 @@ def _dataset(tmp: Path) -> Path:
     from motok.data.root import resolve_data_root
 
     root = resolve_data_root(None) / "bandai-namco"
-    cfg = PreprocessConfig(inputs=[str(root / "bandai-namco-2.tar.xz")], annotations=str(root / "annotations"),
-                           pattern="dataset-2_walk_normal_*", skeleton="bandai21")
+    cfg = PreprocessConfig(data=[str(root / "bandai-namco-2.tar.xz")], annotations=str(root / "annotations"),
+                           clips="dataset-2_walk_normal_*", skeleton="bandai21")
     out = tmp / "walk_normal.h5"
     preprocess(cfg, out, command="benchmarks/sim.py")
     return out

@@ -3,6 +3,9 @@
 Unknown keys are errors (a typo in a recipe must not silently train the default), nested
 dataclasses are addressed with dots (``--set optim.lr=1e-4``), and values are parsed as YAML
 so numbers, booleans and lists come out typed.
+
+A config whose key was renamed lists ``RENAMED_KEYS = {"old": "new"}`` (a ``ClassVar``): the old
+key still works, in a recipe, a ``--set`` or a stored config, with a note naming the new one.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any, TypeVar
 import yaml
 
 from motok.errors import MotokError
+from motok.progress import info
 
 T = TypeVar("T")
 
@@ -78,7 +82,26 @@ def _coerce(value, tp, where: str):
     return value
 
 
+def _renamed(cls, d: dict, where: str) -> dict:
+    """``d`` with the old keys of ``cls`` (and of its nested configs) replaced by the new ones."""
+    if not dataclasses.is_dataclass(cls) or not isinstance(d, dict):
+        return d
+    table = getattr(cls, "RENAMED_KEYS", {})
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for k, v in d.items():
+        if k in table:
+            if table[k] in d:
+                raise ConfigError(f"{where}: give {table[k]!r} or its old spelling {k!r}, not both")
+            info(f"[yellow]note:[/] {where}: key {k} is now {table[k]} (the old spelling works until the next "
+                 f"release)")
+            k = table[k]
+        out[k] = _renamed(hints[k], v, f"{where}.{k}") if k in hints and isinstance(v, dict) else v
+    return out
+
+
 def from_dict(cls: type[T], d: dict, where: str = "config") -> T:
+    d = _renamed(cls, d, where)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
@@ -113,10 +136,11 @@ def load_config(cls: type[T], recipe: str | Path | None = None, overrides=(), ba
             raise ConfigError(f"{path}: not valid YAML: {e}") from None
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: a recipe must be a mapping of config keys")
-        _merge(d, loaded)
+        _merge(d, _renamed(cls, loaded, str(path)))
         where = str(path)
     for item in overrides:
         keys, value = parse_override(item)
+        keys = _renamed_path(cls, keys, f"--set {item}")
         node = d
         for k in keys[:-1]:
             if not isinstance(node.get(k), dict):
@@ -124,6 +148,16 @@ def load_config(cls: type[T], recipe: str | Path | None = None, overrides=(), ba
             node = node[k]
         node[keys[-1]] = value
     return from_dict(cls, d, where)
+
+
+def _renamed_path(cls, keys: list[str], where: str) -> list[str]:
+    """A dotted ``--set`` key with its renamed parts replaced."""
+    out = []
+    for k in keys:
+        k = next(iter(_renamed(cls, {k: None}, where))) if dataclasses.is_dataclass(cls) else k
+        out.append(k)
+        cls = typing.get_type_hints(cls).get(k) if dataclasses.is_dataclass(cls) else None
+    return out
 
 
 def _merge(dst: dict, src: dict) -> None:

@@ -148,7 +148,7 @@ stage_expert() {
 
 stage_priors() {
     for k in "${PRIORS[@]}"; do
-        train "$R/prior_$k" "prior_$k" "${M[@]}" control distill --expert "$EXPERT" --prior "$k" \
+        train "$R/prior_$k" "prior_$k" "${M[@]}" control distill --expert "$EXPERT" --kind "$k" \
             --recipe "recipes/control/prior_$k.yaml" --set iterations="$PRIOR_IT"
         prior_evals "$k" "$TABLE1"  # at once: a session that ends mid-stage keeps every finished prior's numbers
     done
@@ -248,17 +248,17 @@ stage_taskeval() {
         local t=navigation
         case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
         if [ "$t" = navigation ]; then  # no reference motion: the targets are drawn
-            once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" \
+            once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --policy "$dir" -n "$EVAL_N" \
                 --render "$dir/$t.mp4"
         else  # Tables 2-3: windows and head trajectories of the test clips, never trained on
-            once "$dir/eval_${t}_test.json" task_eval "${M[@]}" control eval --task "$t" --run "$dir" -n "$EVAL_N" \
+            once "$dir/eval_${t}_test.json" task_eval "${M[@]}" control eval --task "$t" --policy "$dir" -n "$EVAL_N" \
                 -d "$DATA" --split test --render "$dir/$t.mp4"
         fi
         [ "$t" = navigation ] || continue
-        once "$dir/perturb.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" --render "$dir/balls.mp4"
+        once "$dir/perturb.json" perturb "${M[@]}" control perturb --policy "$dir" -n "$BALLS_N" --render "$dir/balls.mp4"
         local p
         for p in "${BALL_PERIODS[@]}"; do  # the same starts (seed 0) under fewer balls: what the barrage takes
-            once "$dir/perturb_period$p.json" perturb "${M[@]}" control perturb --run "$dir" -n "$BALLS_N" --period "$p"
+            once "$dir/perturb_period$p.json" perturb "${M[@]}" control perturb --policy "$dir" -n "$BALLS_N" --period "$p"
         done
     done
     return 0

@@ -110,8 +110,8 @@ def labelled_dataset(tmp_path_factory, bandai_slices, bandai_dir) -> Path:
     from motok.data.preprocess import PreprocessConfig, preprocess
 
     out = tmp_path_factory.mktemp("labelled-data") / "labelled.h5"
-    cfg = PreprocessConfig(inputs=[str(bandai_slices["labelled"])], annotations=str(bandai_dir / "annotations"),
-                           pattern=LABELLED_PATTERN, skeleton="bandai21")
+    cfg = PreprocessConfig(data=[str(bandai_slices["labelled"])], annotations=str(bandai_dir / "annotations"),
+                           clips=LABELLED_PATTERN, skeleton="bandai21")
     preprocess(cfg, out, command="pytest labelled_dataset")
     return out
 
@@ -122,8 +122,8 @@ def small_dataset(tmp_path_factory, bandai_slice, bandai_dir) -> Path:
     from motok.data.preprocess import PreprocessConfig, preprocess
 
     out = tmp_path_factory.mktemp("datasets") / "walk_normal.h5"
-    cfg = PreprocessConfig(inputs=[str(bandai_slice)], annotations=str(bandai_dir / "annotations"),
-                           pattern=SLICE_PATTERN, skeleton="bandai21")
+    cfg = PreprocessConfig(data=[str(bandai_slice)], annotations=str(bandai_dir / "annotations"),
+                           clips=SLICE_PATTERN, skeleton="bandai21")
     preprocess(cfg, out, command="pytest small_dataset")
     return out
 

@@ -48,7 +48,7 @@ def test_every_option_has_help_and_every_short_flag_one_meaning():
     assert not missing, "options without help text:\n" + "\n".join(missing)
     clashes = {s: sorted(v) for s, v in shorts.items() if len(v) > 1}
     assert not clashes, f"short flags with two meanings: {clashes}"
-    assert shorts["-o"] == {"--out"} and shorts["-d"] == {"--data"} and shorts["-m"] == {"--num-codebooks"}
+    assert shorts["-o"] == {"--out"} and shorts["-d"] == {"--data"} and shorts["-m"] == {"--codebooks"}
 
 
 @pytest.mark.parametrize("path,cmd", COMMANDS, ids=[" ".join(p) for p, _ in COMMANDS])

@@ -189,7 +189,7 @@ def test_golden_clip_into_motok(golden_dir, golden_features, golden_joints, tmp_
 def test_golden_joints_out_of_motok(golden_dir, golden_features, golden_joints, tmp_path):
     """The other way: HumanML3D's joints preprocessed by motok (legacy) and exported give back
     the official feature vectors (frames 0-88, docs/features.md) and the joints."""
-    cfg = PreprocessConfig(inputs=[str(golden_dir / "new_joints_012314.npy")], annotations=None,
+    cfg = PreprocessConfig(data=[str(golden_dir / "new_joints_012314.npy")], annotations=None,
                            skeleton="smpl22", legacy=True)
     preprocess(cfg, tmp_path / "g.h5")
     s = export_humanml3d(tmp_path / "g.h5", tmp_path / "out")

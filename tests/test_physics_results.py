@@ -76,7 +76,7 @@ def test_trainings_resume_only_from_a_checkpoint(tmp_path):
     assert all("--resume" not in a for name, a in distills.items() if name != "prior_hybrid")
     for k in PRIORS:  # each with its own recipe and kind, at one budget
         a = distills[f"prior_{k}"]
-        assert a[a.index("--prior") + 1] == k and a[a.index("--recipe") + 1] == f"recipes/control/prior_{k}.yaml"
+        assert a[a.index("--kind") + 1] == k and a[a.index("--recipe") + 1] == f"recipes/control/prior_{k}.yaml"
         assert "iterations=1500" in a
 
 
@@ -84,7 +84,8 @@ def test_each_prior_is_evaluated_before_the_next_is_distilled(tmp_path):
     """A session that ends in the `priors` stage keeps the numbers of every prior finished; Table 1
     (motion matching) waits for `prioreval` and reads every generation, in the queue's order."""
     cmds = queue(tmp_path, "priors", checkpoints=["prior_hybrid"])
-    steps = [(a[1], Path(a[a.index("--prior") + 1]).name if "--prior" in a else None) for a in cmds]
+    named = lambda a: next((Path(a[a.index(o) + 1]).name for o in ("--kind", "--prior") if o in a), None)  # noqa: E731
+    steps = [(a[1], named(a)) for a in cmds]
     first = steps[:steps.index(("distill", "continuous"))]
     assert first[0] == ("distill", "hybrid")
     assert first[1:] == [("eval", "prior_hybrid")] * 2 + [("generate", "prior_hybrid")] * 8
@@ -151,7 +152,7 @@ def test_tables_2_3_are_evaluated_on_the_test_clips(tmp_path):
     """In-betweening and head tracking are evaluated on windows of the test split (their policies
     trained on the train clips); navigation draws its targets and needs no clips."""
     cmds = queue(tmp_path, "taskeval", checkpoints=["nav_hybrid", "inbetween_hybrid", "hmd_continuous"])
-    evals = {Path(a[a.index("--run") + 1]).name: a for a in cmds if a[:2] == ["control", "eval"]}
+    evals = {Path(a[a.index("--policy") + 1]).name: a for a in cmds if a[:2] == ["control", "eval"]}
     assert set(evals) == {"nav_hybrid", "inbetween_hybrid", "hmd_continuous"}
     for name in ("inbetween_hybrid", "hmd_continuous"):
         a = evals[name]
@@ -181,8 +182,8 @@ def test_a_task_run_stopped_before_its_end_is_not_evaluated(tmp_path):
                        env={**os.environ, "R": str(runs), "MOTOK": f"{sys.executable} {shim}"})
     assert p.returncode == 0, p.stdout + p.stderr
     assert f"skip {runs}/inbetween_hybrid: not evaluated at iteration 2950 of 3000" in p.stdout
-    assert "--run " + str(runs / "inbetween_hybrid") not in p.stdout
-    assert "--run " + str(runs / "nav_hybrid") in p.stdout  # the finished one is
+    assert "--policy " + str(runs / "inbetween_hybrid") not in p.stdout
+    assert "--policy " + str(runs / "nav_hybrid") in p.stdout  # the finished one is
 
 
 def test_an_unknown_stage_fails_before_anything_runs(tmp_path):

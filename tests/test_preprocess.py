@@ -41,7 +41,7 @@ def test_small_dataset_layout(small_dataset, bandai_slice, bandai_dir):
         train = np.concatenate([mf.frames("features", i) for i in mf.split_indices("train")])
         np.testing.assert_allclose(mean, train.mean(0), atol=1e-4)
         prov = mf.provenance
-        assert prov.config["pattern"] == SLICE_PATTERN and len(prov.inputs) == 2 and prov.skipped == []
+        assert prov.config["clips"] == SLICE_PATTERN and len(prov.inputs) == 2 and prov.skipped == []
 
 
 def test_features_recover_canonical_joints_and_frame_counts(small_dataset, bandai_slice):
@@ -60,8 +60,8 @@ def test_features_recover_canonical_joints_and_frame_counts(small_dataset, banda
 
 
 def test_two_jobs_equal_one(bandai_slice, bandai_dir, small_dataset, tmp_path):
-    cfg = PreprocessConfig(inputs=[str(bandai_slice)], annotations=str(bandai_dir / "annotations"),
-                           pattern=SLICE_PATTERN, skeleton="bandai21", jobs=2)
+    cfg = PreprocessConfig(data=[str(bandai_slice)], annotations=str(bandai_dir / "annotations"),
+                           clips=SLICE_PATTERN, skeleton="bandai21", jobs=2)
     out = tmp_path / "j2.h5"
     preprocess(cfg, out, command="test")
     with MotionFile(out) as a, MotionFile(small_dataset) as b:
@@ -93,7 +93,7 @@ def test_bad_clip_stops_or_is_skipped(bandai_slice, bandai_dir, tmp_path):
     bad = d / f"{names[1]}.bvh"
     lines = bad.read_text().splitlines()
     bad.write_text("\n".join(lines[:-5]) + "\n")  # truncated motion block
-    cfg = PreprocessConfig(inputs=[str(d)], annotations=str(bandai_dir / "annotations"), pattern=SLICE_PATTERN,
+    cfg = PreprocessConfig(data=[str(d)], annotations=str(bandai_dir / "annotations"), clips=SLICE_PATTERN,
                            limit=None)
     out = tmp_path / "x.h5"
     with pytest.raises(MotionFormatError, match=names[1]):
@@ -110,7 +110,7 @@ def test_bad_clip_stops_or_is_skipped(bandai_slice, bandai_dir, tmp_path):
 def test_split_naming_missing_clip(bandai_slice, bandai_dir, tmp_path):
     d = tmp_path / "in"
     _slice_copy(bandai_slice, d, 3)
-    cfg = PreprocessConfig(inputs=[str(d)], annotations=str(bandai_dir / "annotations"), pattern=SLICE_PATTERN)
+    cfg = PreprocessConfig(data=[str(d)], annotations=str(bandai_dir / "annotations"), clips=SLICE_PATTERN)
     with pytest.raises(MotionFormatError, match=r"(train|val|test)\.txt.*line \d+.*not among the inputs"):
         preprocess(cfg, tmp_path / "x.h5")
 
@@ -124,28 +124,28 @@ def test_clip_without_caption_file(bandai_slice, tmp_path, monkeypatch):
     (ann / "texts").mkdir(parents=True)
     (ann / "texts" / f"{names[0]}.txt").write_text("a person walks.#a/DET person/NOUN walk/VERB#0.0#0.0\n")
     (ann / "train.txt").write_text("\n".join(names) + "\n")
-    cfg = PreprocessConfig(inputs=[str(d)], annotations=str(ann))
+    cfg = PreprocessConfig(data=[str(d)], annotations=str(ann))
     with pytest.raises(MotionFormatError, match=f"{names[1]}.*no caption file"):
         preprocess(cfg, tmp_path / "x.h5")
     (ann / "texts" / f"{names[1]}.txt").write_text("a person walks.#tokens#1.0\n")
     with pytest.raises(MotionFormatError, match=r"line 1.*4 fields"):
         preprocess(cfg, tmp_path / "x.h5")
     with pytest.raises(KeyError, match="reference_clip 'nope' is not among the 2 clip"):
-        preprocess(PreprocessConfig(inputs=[str(d)], annotations=None, reference_clip="nope"), tmp_path / "x.h5")
+        preprocess(PreprocessConfig(data=[str(d)], annotations=None, reference_clip="nope"), tmp_path / "x.h5")
 
 
 def test_unknown_skeleton_and_empty_archive(bandai_slice, tmp_path):
     d = tmp_path / "in"
     _slice_copy(bandai_slice, d, 1)
     with pytest.raises(SkeletonError, match="unknown skeleton 'smpl99'"):
-        preprocess(PreprocessConfig(inputs=[str(d)], annotations=None, skeleton="smpl99"), tmp_path / "x.h5")
+        preprocess(PreprocessConfig(data=[str(d)], annotations=None, skeleton="smpl99"), tmp_path / "x.h5")
     empty = tmp_path / "empty.tar.gz"
     with tarfile.open(empty, "w:gz") as tar:
         info = tarfile.TarInfo("README.md")
         info.size = 5
         tar.addfile(info, io.BytesIO(b"hello"))
     with pytest.raises(MotionFormatError, match="empty.tar.gz"):
-        preprocess(PreprocessConfig(inputs=[str(empty)], annotations=None), tmp_path / "x.h5")
+        preprocess(PreprocessConfig(data=[str(empty)], annotations=None), tmp_path / "x.h5")
 
 
 def test_data_root_resolution(monkeypatch, tmp_path):
@@ -161,7 +161,7 @@ def test_npy_joints_through_the_whole_pipeline_match_golden_features(golden_dir,
     """HumanML3D's own joints, preprocessed as a .npy input with the legacy switch, give back the
     official feature vectors (the Gaussian filter's reach from the clip end excluded)."""
     out = tmp_path / "golden.h5"
-    cfg = PreprocessConfig(inputs=[str(golden_dir / "new_joints_012314.npy")], annotations=None,
+    cfg = PreprocessConfig(data=[str(golden_dir / "new_joints_012314.npy")], annotations=None,
                            skeleton="smpl22", legacy=True)
     summary = preprocess(cfg, out)
     assert summary["clips"] == 1 and summary["feature_dim"] == 263

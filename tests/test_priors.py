@@ -302,14 +302,14 @@ def test_control_distill_command(small_dataset, tiny_expert, tmp_path, monkeypat
     out = tmp_path / "prior"
     base = ["--quiet", "control", "distill", "--expert", str(tiny_expert), "--data", str(small_dataset),
             "--recipe", str(recipe), "-o", str(out)]
-    r = CliRunner().invoke(app, [*base, "--prior", "hybrid", "--until", "1", "--json"])
+    r = CliRunner().invoke(app, [*base, "--kind", "hybrid", "--until", "1", "--json"])
     assert r.exit_code == 0, r.output
     summary = json.loads(r.output)
     assert summary["iterations"] == 1 and summary["action_loss"] > 0 and 0 < summary["code_usage"] <= 1
     meta = json.loads((out / "bundle.json").read_text())
     assert meta["extra"]["iteration"] == 1 and meta["config"]["iterations"] == 3 and (out / "humanoid.xml").exists()
-    for args, says in ((["--prior", "vq-vae"], "--prior must be one of"),
-                       (["--prior", "discrete"], "the recipe is for a 'hybrid' prior")):
+    for args, says in ((["--kind", "vq-vae"], "--kind must be one of"),
+                       (["--kind", "discrete"], "the recipe is for a 'hybrid' prior")):
         r = CliRunner().invoke(app, [*base, *args])
         assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, r.output
     # the distilled policy on the imitation task, with the first codebook only

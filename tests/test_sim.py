@@ -256,7 +256,7 @@ def test_sim_commands(small_dataset, hum_path, tmp_path, monkeypatch):
     monkeypatch.setenv("MOTOK_CACHE", str(tmp_path / "cache"))
     xml = tmp_path / "h.xml"
     r = runner.invoke(app, ["--quiet", "sim", "build-humanoid", "--data", str(small_dataset), "-o", str(xml),
-                            "--mass", "70", "--json"])
+                            "--total-mass", "70", "--json"])
     assert r.exit_code == 0, r.output
     assert mujoco.MjModel.from_xml_path(str(xml)).body_subtreemass[1] == pytest.approx(70.0, rel=1e-4)
     gif = tmp_path / "replay.gif"
@@ -265,7 +265,7 @@ def test_sim_commands(small_dataset, hum_path, tmp_path, monkeypatch):
     assert r.exit_code == 0 and gif.stat().st_size > 0, r.output
     mp4 = tmp_path / "pd.mp4"
     r = runner.invoke(app, ["--quiet", "sim", "pd-track", "--data", str(small_dataset), "--humanoid", str(hum_path),
-                            "--clip", "dataset-2_walk_normal_004", "--seconds", "0.3", "-o", str(mp4), "--json"])
+                            "--clip", "dataset-2_walk_normal_004", "--seconds", "0.3", "--render", str(mp4), "--json"])
     assert r.exit_code == 0 and mp4.stat().st_size > 0, r.output
     assert '"survival_mean_s"' in r.output
     r = runner.invoke(app, ["sim", "replay", "--data", str(small_dataset), "--clip", "nope", "-o", str(gif)])

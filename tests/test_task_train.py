@@ -214,15 +214,15 @@ def test_train_resume_eval_and_the_command(hum, walk_lib, tiny_prior, tmp_path, 
         train_from_prior(replace(cfg), tiny_prior, tmp_path / "bad", task="jump")
 
     from motok.cli.main import app
-    r = CliRunner().invoke(app, ["control", "eval", "--task", "navigation", "--run", str(tmp_path / "straight"),
+    r = CliRunner().invoke(app, ["control", "eval", "--task", "navigation", "--policy", str(tmp_path / "straight"),
                                  "-n", "2", "--json"])
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout)["episodes"] == 2
     r = CliRunner().invoke(app, ["control", "eval", "--task", "navigation", "--prior", str(tiny_prior)])
-    assert r.exit_code == 2 and "--run" in r.output
+    assert r.exit_code == 2 and "--policy" in r.output
     # the wrong task for the run: one line before any episode is played or any file written
     stamp = (tmp_path / "straight" / "eval_navigation.json").stat().st_mtime_ns
-    r = CliRunner().invoke(app, ["control", "eval", "--task", "hmd", "--run", str(tmp_path / "straight"), "-n", "2"])
+    r = CliRunner().invoke(app, ["control", "eval", "--task", "hmd", "--policy", str(tmp_path / "straight"), "-n", "2"])
     assert r.exit_code != 0 and "is a 'navigation' policy, not 'hmd'" in r.output
     assert not (tmp_path / "straight" / "eval_hmd.json").exists()
     assert (tmp_path / "straight" / "eval_navigation.json").stat().st_mtime_ns == stamp

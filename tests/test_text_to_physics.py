@@ -1,5 +1,5 @@
 """Text -> kinematic motion -> simulated motion in one step (motok.control.text_to_physics,
-`motok gpt sample --physics PRIOR` / `--expert RUN`), on the tiny GPT of tiny_runs.py and an
+`motok gpt sample --prior PRIOR` / `--expert RUN`), on the tiny GPT of tiny_runs.py and an
 untrained (2-iteration) hybrid prior: what is checked is the plumbing (the kinematic motion is
 the GPT's, the output is the tracking of it, every reader takes both files, failures are one
 line), not how well an untrained prior walks."""
@@ -118,7 +118,7 @@ def test_the_command_reports_every_clip(tree, controllers, tmp_path):
     res = json.loads(r.stdout)
     assert res["controller_kind"] == "control-expert" and res["clips"] == 2 and len(res["per_clip"]) == 2
     assert (tmp_path / "e.kinematic.h5").exists() and (tmp_path / "e.h5").exists()
-    r = runner.invoke(app, base + ["--physics", str(controllers[0]), "--codebooks", "2", "-o", str(tmp_path / "p.h5")])
+    r = runner.invoke(app, base + ["--prior", str(controllers[0]), "--codebooks", "2", "-o", str(tmp_path / "p.h5")])
     assert r.exit_code == 0, r.output
     with MotionFile(tmp_path / "p.kinematic.h5") as mf:
         names = list(mf.names)
@@ -129,13 +129,13 @@ def test_the_command_reports_every_clip(tree, controllers, tmp_path):
 
 
 @pytest.mark.parametrize("extra,message", [
-    (["--physics", "{gpt}"], "--physics {gpt}: expected a control-prior bundle"),
-    (["--physics", "{expert}"], "found kind 'control-expert'; pass it with --expert"),
+    (["--prior", "{gpt}"], "--prior {gpt}: expected a control-prior bundle"),
+    (["--prior", "{expert}"], "found kind 'control-expert'; pass it with --expert"),
     (["--expert", "{prior}"], "--expert {prior}: expected a control-expert bundle"),
-    (["--physics", "{prior}", "--expert", "{expert}"], "not both"),
-    (["--physics", "{prior}", "--codebooks", "9"], "--codebooks must be in 1..4"),
-    (["--codebooks", "2"], "--codebooks goes with --physics"),
-    (["--physics", "{prior}", "--render", "{tmp}/v.png"], "unknown suffix '.png'"),
+    (["--prior", "{prior}", "--expert", "{expert}"], "not both"),
+    (["--prior", "{prior}", "--codebooks", "9"], "--codebooks must be in 1..4"),
+    (["--codebooks", "2"], "--codebooks goes with --prior"),
+    (["--prior", "{prior}", "--render", "{tmp}/v.png"], "unknown suffix '.png'"),
 ])
 def test_wrong_controllers_fail_in_one_line_before_any_work(tree, controllers, tmp_path, extra, message):
     from motok.cli.main import app
@@ -153,6 +153,6 @@ def test_wrong_controllers_fail_in_one_line_before_any_work(tree, controllers, t
 def test_the_library_refuses_a_missing_controller(tree, tmp_path):
     from motok.control.text_to_physics import kinematic_path, text_to_physics
 
-    with pytest.raises(UserError, match="--physics PRIOR or --expert RUN"):
+    with pytest.raises(UserError, match="--prior PRIOR or --expert RUN"):
         text_to_physics(tree / "gpt", TEXTS, tmp_path / "x.h5")
     assert kinematic_path("runs/a/walk.h5").as_posix() == "runs/a/walk.kinematic.h5"

@@ -9,12 +9,12 @@ registered later) gets it without doing anything:
   they go in (:data:`ALIASES_GO_IN`), and never appear in ``--help``, so a short flag has one
   meaning everywhere.
 
-The vocabulary itself (docs: README, "The stages"): the main input of a command is ``--data``/
-``-d`` (a mocap file or folder for ``preprocess``, a motion, motion-dataset or tokens artifact
-elsewhere); models are named by kind (``--tokenizer``/``-t``, ``--gpt``/``-g``,
-``--evaluator``/``-e``, ``--expert``); what a command writes is ``-o``/``--out``; one clip is
-``--clip``, a clip-name glob is ``--clips``; ``info`` and ``plot`` take the file they describe as
-their argument.
+The vocabulary itself is docs/cli.md (its table is what tests/test_cli_vocabulary.py checks every
+command against): the main input of a command is ``--data``/``-d``; models are named by kind
+(``--tokenizer``/``-t``, ``--gpt``/``-g``, ``--evaluator``/``-e``, ``--expert``, ``--prior``,
+``--policy``); what a command exists to make is ``-o``/``--out``, a video beside it ``--render``;
+one clip is ``--clip``, a clip-name glob is ``--clips``; ``info`` and ``plot`` take the file they
+describe as their argument.
 """
 
 from __future__ import annotations
@@ -109,11 +109,13 @@ def _with_aliases(cmd, table, positional):
 
     def parse_args(ctx, args):
         args, used = rewrite_args(cmd, list(args), table, positional)
-        rest = parse(ctx, args)
-        # After parsing, so a --quiet after the subcommand silences the notes too.
-        for old, new in dict(used).items():
-            progress.info(f"[yellow]note:[/] {old} is now {new} (the old spelling works until motok {ALIASES_GO_IN})")
-        return rest
+        # Before parsing, so an error about the option (a missing file) follows the note that
+        # names it; a --quiet after the subcommand is not parsed yet: it is looked for here.
+        options = args[:args.index("--")] if "--" in args else args
+        if not {"-q", "--quiet"} & set(options):
+            for old, new in dict(used).items():
+                progress.info(f"[yellow]note:[/] {old} is now {new} (the old spelling works until motok {ALIASES_GO_IN})")
+        return parse(ctx, args)
     return parse_args
 
 

@@ -33,8 +33,8 @@ def train_evaluator(
     report(run(_train, cfg, data, out), as_json, "eval train-evaluator")
 
 
-# -m meant --motions here and --num-codebooks in `tokenize`: it keeps its old meaning here, hidden,
-# for one release; after that it is --num-codebooks everywhere.
+# -m meant --motions here and --codebooks in `tokenize`: it keeps its old meaning here, hidden,
+# for one release; after that it is --codebooks everywhere.
 @renamed(out_json="--out", out_md="--out", m="--motions")
 def _t2m_command(
     evaluator: Path = typer.Option(..., "--evaluator", "-e", help="An evaluator run (from `eval train-evaluator`)."),
@@ -108,14 +108,14 @@ def captions_command(
 
 @app.command(epilog=examples("motok eval recon -d runs/bandai2.h5 -t runs/tok --split test",
                              "motok eval recon -d runs/bandai2.h5 --motions recon.h5 --json"))
-@renamed(m="--motions")
+@renamed(m="--motions", num_codebooks="--codebooks")
 def recon(
     data: Path = data_option("The motion-dataset the reconstruction is compared with."),
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Reconstruct the split through it."),
     motions: Optional[Path] = typer.Option(None, "--motions", help="A reconstruction artifact (clips named "
                                            "as in --data, e.g. from `tokenize decode`).", callback=existing),
     split: str = typer.Option("test", "--split", help="The split of --data to compare (train, val, test)."),
-    num_codebooks: Optional[int] = typer.Option(None, "--num-codebooks",
+    num_codebooks: Optional[int] = typer.Option(None, "--codebooks",
                                                 help="With --tokenizer: use only the first M codebooks."),
     as_json: bool = JsonOut,
 ):

@@ -53,8 +53,9 @@ def train(
 @app.command(epilog=examples(
     'motok gpt sample -g runs/gpt --text "a person walks forward" -n 4 -o walk.h5 --render walk.gif --bvh walk.bvh',
     'motok gpt sample -g runs/gpt --texts-file prompts.txt --seconds 4 --top-k 20 -o prompts.h5 --json',
-    'motok gpt sample -g runs/gpt --text "a person walks forward" --physics runs/prior_hybrid -o walk_sim.h5 '
+    'motok gpt sample -g runs/gpt --text "a person walks forward" --prior runs/prior_hybrid -o walk_sim.h5 '
     '--render walk_sim.mp4'))
+@renamed(physics="--prior")
 def sample(
     gpt: Path = typer.Option(..., "--gpt", "-g", help="A GPT run folder (from `gpt train`)."),
     text: list[str] = typer.Option([], "--text", metavar="TEXT",
@@ -85,19 +86,19 @@ def sample(
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Tokenizer run (default: the GPT's own).",
                                              callback=existing),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch", help="Decode with another tokenizer."),
-    physics: Optional[Path] = input_option("--physics", help="Also simulate: track the motion with this distilled "
-                                           "prior (a control-prior: its posterior and decoder); -o is then the "
-                                           "simulated motion, the kinematic one goes to OUT.kinematic.h5, "
-                                           "--render is a video (.mp4/.gif) of the first clip over its kinematic "
-                                           "ghost and --bvh exports the simulated clips.", required=False),
-    expert: Optional[Path] = input_option("--expert", help="Simulate as --physics does, tracked by this "
+    prior: Optional[Path] = input_option("--prior", help="Also simulate: track the motion with this distilled "
+                                         "prior (a control-prior: its posterior and decoder); -o is then the "
+                                         "simulated motion, the kinematic one goes to OUT.kinematic.h5, "
+                                         "--render is a video (.mp4/.gif) of the first clip over its kinematic "
+                                         "ghost and --bvh exports the simulated clips.", required=False),
+    expert: Optional[Path] = input_option("--expert", help="Simulate as --prior does, tracked by this "
                                           "control-expert run instead of a prior.", required=False),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="With --physics: decode with the first M "
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
                                             "codebooks only (default: all)."),
     as_json: bool = JsonOut,
 ):
     """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went. With
-    --physics (or --expert) the motion is also tracked in MuJoCo, as `motok control track` does."""
+    --prior (or --expert) the motion is also tracked in MuJoCo, as `motok control track` does."""
     from motok.gpt.sample import sample as _sample
     texts = list(text)
     if texts_file is not None:
@@ -108,11 +109,11 @@ def sample(
     opts = dict(num_samples=num_samples, seed=seed, temperature=temperature, top_k=top_k, top_p=top_p,
                 argmax=argmax, seconds=seconds, render=render, bvh=bvh, tokenizer=tokenizer,
                 allow_mismatch=allow_mismatch, guidance=guidance, snap=snap)
-    if physics is None and expert is None and codebooks is None:
+    if prior is None and expert is None and codebooks is None:
         _report(run(_sample, gpt, texts, out, **opts), as_json, "gpt sample")
         return
     from motok.control.text_to_physics import text_to_physics
-    _report_physics(run(text_to_physics, gpt, texts, out, prior=physics, expert=expert, codebooks=codebooks,
+    _report_physics(run(text_to_physics, gpt, texts, out, prior=prior, expert=expert, codebooks=codebooks,
                         **opts), as_json)
 
 
@@ -123,7 +124,7 @@ def _report_physics(summary: dict, as_json: bool):
         return
     from rich.markup import escape
     per = summary.pop("per_clip")
-    report(summary, False, "gpt sample --physics", hide=("output", "kinematic", "video", "bvh"))
+    report(summary, False, "gpt sample, simulated", hide=("output", "kinematic", "video", "bvh"))
     for name, r in per.items():
         if "mpjpe_mm" not in r:
             line = r.get("error", "not tracked")

@@ -68,7 +68,7 @@ def _clip_key(clip: str):
 @renamed(i="--data", input="--data", pattern="--clips")
 def preprocess(
     out: Path = output_option(help="Output motion-dataset (.h5).", suffixes=H5),
-    inputs: list[str] = typer.Option([], "--data", "-d", metavar="PATH",
+    inputs: list[Path] = typer.Option([], "--data", "-d", metavar="PATH",
                                      help="Mocap to read: a .bvh or .npy file, a folder or a .zip/.tar.* archive "
                                           "(repeatable), or one HumanML3D folder (new_joint_vecs/, read as it is). "
                                           "Default: Bandai-Namco set 2 in the data root."),
@@ -96,7 +96,7 @@ def preprocess(
     from motok.data.preprocess import PreprocessConfig
     from motok.data.preprocess import preprocess as _preprocess
 
-    flags = {"inputs": inputs or None, "annotations": annotations, "pattern": clips, "skeleton": skeleton,
+    flags = {"data": [str(p) for p in inputs] or None, "annotations": annotations, "clips": clips, "skeleton": skeleton,
              "fps": fps, "npy_fps": npy_fps, "jobs": jobs, "limit": limit}
     overrides = list(sets) + [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
     overrides += ["legacy=true"] * legacy + ["skip_bad=true"] * skip_bad
@@ -110,10 +110,12 @@ def _skipped(skipped: list[dict]) -> str:
     return f"{len(skipped)}" + "".join(f"\n  {s['input']}: {s['error']}" for s in skipped[:10]) + more
 
 
-@app.command(epilog=examples("motok info runs/bandai2.h5", "motok info runs/gpt/   (a checkpoint bundle)"))
+@app.command(epilog=examples("motok info runs/bandai2.h5 --max-captions 5",
+                             "motok info runs/gpt/   (a checkpoint bundle)"))
+@renamed(captions="--max-captions")
 def info(path: Path = typer.Argument(..., help="Any motok artifact (.h5) or checkpoint folder.", callback=existing),
          as_json: bool = JsonOut,
-         captions: int = typer.Option(3, "--captions", help="How many captions to show.")):
+         captions: int = typer.Option(3, "--max-captions", help="How many captions to show.")):
     """Print what a file holds: kind, version, provenance; datasets, splits and captions of an
     artifact; config, references and tensors (shapes, parameters, verified hash) of a bundle."""
     from motok.info import describe, print_description
@@ -171,7 +173,7 @@ def export_humanml3d_cmd(
 ):
     """Export a data set as a HumanML3D folder, for T2M-GPT, MoMask and Guo et al.'s evaluator."""
     from motok.data.humanml3d_folder import export_humanml3d
-    summary = run(export_humanml3d, data, out, pattern=clips, stats=stats)
+    summary = run(export_humanml3d, data, out, clips=clips, stats=stats)
     report(summary, as_json, "export humanml3d")
 
 

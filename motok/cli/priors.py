@@ -13,7 +13,7 @@ import typer
 
 from motok.cli.common import (H5, Device, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
                               output_option, recipe_option, report, results, run, valid_device)
-from motok.cli.conventions import examples
+from motok.cli.conventions import examples, renamed
 from motok.control.priors.kinds import KINDS
 from motok.control.tasks import registry
 
@@ -21,9 +21,10 @@ PRIORS = " | ".join(KINDS)
 EVAL_TASKS = (registry.IMITATION, *registry.names())  # a prior on imitation, or a task policy on its task
 
 
+@renamed(prior="--kind")
 def distill_cmd(
     expert: Path = input_option("--expert", help="A control-expert run folder (the frozen teacher)."),
-    prior: str = typer.Option(..., "--prior", help=f"The bottleneck: {PRIORS}."),
+    prior: str = typer.Option(..., "--kind", help=f"The prior's bottleneck: {PRIORS}."),
     out: Path = output_option(help="Prior folder (checkpoint bundle, metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/control/prior_*.yaml"),
     sets: list[str] = Sets,
@@ -48,20 +49,21 @@ def distill_cmd(
     report(summary, as_json, f"control distill {prior}")
 
 
+@renamed(run="--policy")
 def eval_cmd(
     prior: Optional[Path] = input_option("--prior", help="--task imitation: a control-prior folder (from `control "
                                          "distill`).", required=False),
     task: str = typer.Option(registry.IMITATION, "--task", help="imitation (a prior, --prior), or a trained task "
-                             f"policy's task: {' | '.join(registry.names())} (--run)."),
-    run_dir: Optional[Path] = input_option("--run", help="A control-task run folder (from `control train`).",
-                                           required=False),
+                             f"policy's task: {' | '.join(registry.names())} (--policy)."),
+    run_dir: Optional[Path] = input_option("--policy", help="A task policy: a control-task run folder (from "
+                                           "`control train`).", required=False),
     episodes: int = typer.Option(256, "-n", "--num-samples", help="Task policies: episodes to evaluate."),
     seed: int = typer.Option(0, "--seed", help="Task policies: seed of the start states and targets."),
     data: Optional[Path] = data_option("Dataset (default: the one it was distilled on).", required=False),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
                                         "distillation clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test)."),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Decode with the first M codebooks only "
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="Decode with the first M codebooks only "
                                             "(residual priors; default: all)."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
                                            suffixes=(".mp4", ".gif"), required=False),
@@ -78,7 +80,7 @@ def eval_cmd(
         return _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json,
                           valid_device(device))
     if prior is None:
-        fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --run RUN)")
+        fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --policy RUN)")
     from motok.control.priors.evaluate import evaluate_prior
 
     res = run(evaluate_prior, prior, task=task, data=data, clips=clips, split=split, codebooks=codebooks,
@@ -94,7 +96,7 @@ def eval_cmd(
 
 def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json, device=None) -> None:
     if run_dir is None or prior is not None:
-        fail(f"--task {task} evaluates a trained task policy: pass --run RUN (from `motok control train`), not --prior")
+        fail(f"--task {task} evaluates a trained task policy: pass --policy RUN (from `motok control train`), not --prior")
     from motok.control.highlevel.evaluate import evaluate_run
 
     res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render,
@@ -110,7 +112,7 @@ def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render,
 def generate_cmd(
     prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`)."),
     out: Path = output_option(help="The generated motion (.h5, a motion artifact).", suffixes=H5),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Sample codes from the first M codebooks "
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="Sample codes from the first M codebooks "
                                             "(default: all; 0: hybrid's prior z_p alone; not for the continuous "
                                             "prior)."),
     seconds: float = typer.Option(30.0, "--seconds", help="Length of each sample in seconds (a fall ends it "
@@ -145,14 +147,14 @@ def generate_cmd(
 
 def register(app: typer.Typer) -> None:
     app.command("distill", epilog=examples(
-        "motok control distill --expert runs/expert --prior hybrid --recipe recipes/control/prior_hybrid.yaml "
+        "motok control distill --expert runs/expert --kind hybrid --recipe recipes/control/prior_hybrid.yaml "
         "-o runs/prior_hybrid",
-        "motok control distill --expert runs/expert --prior hybrid --recipe recipes/control/prior_hybrid.yaml "
+        "motok control distill --expert runs/expert --kind hybrid --recipe recipes/control/prior_hybrid.yaml "
         "-o runs/prior_hybrid --resume --until 1000"))(distill_cmd)
     app.command("eval", epilog=examples(
         "motok control eval --task imitation --prior runs/prior_hybrid --split test",
         "motok control eval --task imitation --prior runs/prior_hybrid --codebooks 1 --json",
-        "motok control eval --task navigation --run runs/nav_hybrid -n 256 --render nav.mp4"))(eval_cmd)
+        "motok control eval --task navigation --policy runs/nav_hybrid -n 256 --render nav.mp4"))(eval_cmd)
     app.command("generate", epilog=examples(
         "motok control generate --prior runs/prior_hybrid --codebooks 1 --seconds 30 -n 10 -o gen_hybrid_m1.h5 "
         "--render gen.mp4",

@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 
 from motok.cli.common import data_option, existing, fail, output_option, print_json, report, run, wrote
-from motok.cli.conventions import examples
+from motok.cli.conventions import examples, renamed
 
 app = typer.Typer(help="Physics: the MuJoCo humanoid built from a dataset's skeleton, and its reference motions.",
                   no_args_is_help=True)
@@ -39,11 +39,12 @@ def _setup(data: Path, humanoid: Optional[Path], hz: Optional[float], clips):
 
 
 @app.command("build-humanoid", epilog=examples("motok sim build-humanoid -d runs/bandai2.h5 -o humanoid.xml",
-                                               "motok sim build-humanoid -d runs/bandai2.h5 --mass 70 -o heavy.xml"))
+                                               "motok sim build-humanoid -d runs/bandai2.h5 --total-mass 70 -o heavy.xml"))
+@renamed(mass="--total-mass")
 def build_humanoid_cmd(
     data: Path = Data,
     out: Path = output_option(help="Output MJCF (.xml).", suffixes=(".xml",)),
-    mass: Optional[float] = typer.Option(None, "--mass", help="Total mass in kg (default 65)."),
+    mass: Optional[float] = typer.Option(None, "--total-mass", help="Total mass in kg (default 65)."),
     timestep: Optional[float] = typer.Option(None, "--timestep", help="Physics timestep in s (default 1/120)."),
     sets: list[str] = Sets,
     as_json: bool = JsonOut,
@@ -86,14 +87,15 @@ def replay(
 
 @app.command("pd-track", epilog=examples(
     "motok sim pd-track -d runs/bandai2.h5 --clips 'dataset-2_walk_*'",
-    "motok sim pd-track -d runs/bandai2.h5 --clip dataset-2_walk_normal_001 -o pd.mp4 --seconds 5"))
+    "motok sim pd-track -d runs/bandai2.h5 --clip dataset-2_walk_normal_001 --render pd.mp4 --seconds 5"))
+@renamed(o="--render", out="--render")
 def pd_track_cmd(
     data: Path = Data,
-    clip: Optional[str] = typer.Option(None, "--clip", help="One clip (name or index); needed for -o."),
+    clip: Optional[str] = typer.Option(None, "--clip", help="One clip (name or index); needed for --render."),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="A clip-name glob (default: every "
                                         "clip)."),
-    out: Optional[Path] = output_option(help="Video of the tracking (.mp4/.gif), one clip only.", suffixes=VIDEO,
-                                        required=False),
+    render: Optional[Path] = output_option("--render", help="Video of the tracking, its reference as a ghost "
+                                           "(.mp4/.gif); one clip only.", suffixes=VIDEO, required=False),
     humanoid: Optional[Path] = HumanoidOpt,
     hz: Optional[float] = Hz,
     seconds: Optional[float] = typer.Option(None, "--seconds", help="Track at most this long, > 0 (default: whole "
@@ -106,8 +108,8 @@ def pd_track_cmd(
         clip = None
     if clip is not None and clips is not None:
         fail("give --clip (one clip) or --clips (a glob), not both")
-    if out is not None and clip is None:
-        fail("-o renders one clip: pass --clip NAME")
+    if render is not None and clip is None:
+        fail("--render draws one clip: pass --clip NAME")
     if seconds is not None and not seconds > 0:
         fail(f"--seconds {seconds} must be > 0")
 
@@ -115,7 +117,7 @@ def pd_track_cmd(
         from motok.control.expert.baselines import pd_track_run
         from motok.data.dataset import select_clips
         chosen = [_key(clip)] if clip is not None else (select_clips(data, clips) if clips else None)
-        return pd_track_run(*_setup(data, humanoid, hz, chosen), seconds, out, stick)
+        return pd_track_run(*_setup(data, humanoid, hz, chosen), seconds, render, stick)
 
     summary = run(go)
     if as_json:

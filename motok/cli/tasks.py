@@ -1,7 +1,7 @@
 """``motok control train --task T --prior PRIOR`` (a high-level policy over a frozen prior) and
 ``motok control perturb`` (thrown balls at a trained policy). Arguments only; the work is in
 ``motok.control.highlevel.train`` and ``motok.control.highlevel.perturb``. :func:`register` adds the commands
-to the ``motok control`` app; ``motok control eval --task T --run RUN`` is in ``cli/priors.py``."""
+to the ``motok control`` app; ``motok control eval --task T --policy RUN`` is in ``cli/priors.py``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import typer
 
 from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, output_option,
                               recipe_option, report, run)
-from motok.cli.conventions import examples
+from motok.cli.conventions import examples, renamed
 from motok.control.tasks import registry
 
 TASK_NAMES = " | ".join(registry.names())
@@ -21,7 +21,7 @@ TASK_NAMES = " | ".join(registry.names())
 def train_cmd(
     task: Optional[str] = typer.Option(None, "--task", help=f"The task: {TASK_NAMES} (default: the recipe's)."),
     prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`), kept frozen."),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="Choose codes in the first M codebooks "
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="Choose codes in the first M codebooks "
                                             "(residual priors; default: the recipe's, else all)."),
     out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/control/task_*.yaml"),
@@ -47,8 +47,10 @@ def train_cmd(
     report(summary, as_json, f"control train {cfg.task if task is None else task}")
 
 
+@renamed(run="--policy")
 def perturb_cmd(
-    run_dir: Path = input_option("--run", help="A control-task run folder (from `control train`), e.g. navigation."),
+    run_dir: Path = input_option("--policy", help="A task policy: a control-task run folder (from `control train`), "
+                                 "e.g. navigation."),
     episodes: int = typer.Option(64, "-n", "--num-samples", help="Episodes to run under fire."),
     seed: int = typer.Option(0, "--seed", help="Seed of the throws and of the task's starts and targets."),
     period: float = typer.Option(0.3, "--period", help="Seconds between throws (the paper's 0.3; another "
@@ -72,8 +74,8 @@ def perturb_cmd(
 
 def register(app: typer.Typer) -> None:
     app.command("perturb", epilog=examples(
-        "motok control perturb --run runs/nav_hybrid -n 64 --render nav_balls.mp4",
-        "motok control perturb --run runs/nav_hybrid --period 0.6 --json"))(perturb_cmd)
+        "motok control perturb --policy runs/nav_hybrid -n 64 --render nav_balls.mp4",
+        "motok control perturb --policy runs/nav_hybrid --period 0.6 --json"))(perturb_cmd)
     app.command("train", epilog=examples(
         "motok control train --task navigation --prior runs/prior_hybrid --codebooks 1 "
         "--recipe recipes/control/task_navigation.yaml -o runs/nav_hybrid",

@@ -14,7 +14,7 @@ from motok.cli.conventions import examples, renamed
 app = typer.Typer(help="Motion tokenizer (T2M-GPT VQ-VAE): train, encode, decode, eval.", no_args_is_help=True)
 
 Tokenizer = typer.Option(..., "--tokenizer", "-t", help="A tokenizer run folder (from `tokenize train`).")
-NumCodebooks = typer.Option(None, "--num-codebooks", "-m", help="Use only the first M codebooks (residual VQ).")
+NumCodebooks = typer.Option(None, "--codebooks", "-m", help="Use only the first M codebooks (residual VQ).")
 Split = typer.Option("test", "--split", help="The split of --data to evaluate (train, val, test).")
 
 
@@ -52,6 +52,7 @@ def train(
 
 @app.command(epilog=examples("motok tokenize encode -t runs/tok -d runs/bandai2.h5 -o runs/tokens.h5",
                              "motok tokenize encode -t runs/rvq -d runs/bandai2.h5 -m 2 --split test -o test.h5"))
+@renamed(num_codebooks="--codebooks")
 def encode(
     tokenizer: Path = Tokenizer,
     data: Path = data_option("A motion or motion-dataset artifact."),
@@ -65,7 +66,7 @@ def encode(
 
 
 @app.command(epilog=examples("motok tokenize decode -d runs/tokens.h5 -t runs/tok -o recon.h5"))
-@renamed(positional="--data")
+@renamed(positional="--data", num_codebooks="--codebooks")
 def decode(
     tokens: Path = data_option("A tokens artifact (from `tokenize encode`)."),
     tokenizer: Path = Tokenizer,
@@ -81,6 +82,7 @@ def decode(
 
 @app.command("eval", epilog=examples("motok tokenize eval -t runs/tok -d runs/bandai2.h5 --split test",
                                      "motok tokenize eval -t runs/rvq -d runs/bandai2.h5 -m 1 --json"))
+@renamed(num_codebooks="--codebooks")
 def evaluate(
     tokenizer: Path = Tokenizer,
     data: Path = data_option("A motion-dataset artifact."),

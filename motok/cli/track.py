@@ -19,7 +19,7 @@ def track_cmd(
                                           required=False),
     prior: Optional[Path] = input_option("--prior", help="The controller: a distilled prior (its posterior and "
                                          "decoder), instead of --expert.", required=False),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="With --prior: decode with the first M "
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
                                             "codebooks only (default: all)."),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),

@@ -20,7 +20,7 @@ def view_cmd(
                                           "the physics, the reference as a ghost.", required=False),
     prior: Optional[Path] = input_option("--prior", help="A distilled prior (its posterior and decoder) tracking "
                                          "each clip, instead of --expert.", required=False),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", help="With --prior: decode with the first M "
+    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
                                             "codebooks only (default: all)."),
     clip: Optional[str] = typer.Option(None, "--clip", help="The clip to start with (name or index; default: the "
                                        "first)."),

@@ -1,8 +1,8 @@
-"""Text -> kinematic motion -> physically simulated motion, in one step (``motok gpt sample --physics``).
+"""Text -> kinematic motion -> physically simulated motion, in one step (``motok gpt sample --prior``).
 
 The GPT's motion is what ``motok gpt sample`` writes; it becomes the reference of
 ``motok control track`` (:func:`motok.control.track.track`): each clip is placed on the floor and
-tracked from its first frame by a distilled prior's posterior and decoder (``--physics PRIOR``,
+tracked from its first frame by a distilled prior's posterior and decoder (``--prior PRIOR``,
 optionally ``--codebooks M``) or by the expert (``--expert RUN``) until it ends or the
 controller's failure test stops it.
 
@@ -29,7 +29,7 @@ from motok.errors import UserError
 
 H5 = (".h5", ".hdf5")
 VIDEO = (".mp4", ".gif")  # what track's MuJoCo render (motok.sim.render) writes
-KINDS = {"--physics": ("control-prior", "a distilled prior, from `motok control distill`"),
+KINDS = {"--prior": ("control-prior", "a distilled prior, from `motok control distill`"),
          "--expert": ("control-expert", "an expert run, from `motok control expert train`")}
 
 
@@ -44,13 +44,13 @@ def load_physics_controller(prior=None, expert=None, codebooks: int | None = Non
     fault: exactly one controller, of the bundle kind its option expects, and ``codebooks`` within
     the prior's (a wrong bundle costs a line, not a sampling run and a traceback)."""
     if prior is None and expert is None:
-        raise UserError("--codebooks goes with --physics PRIOR (a control-prior bundle)" if codebooks is not None
-                        else "simulate with one controller: --physics PRIOR or --expert RUN")
+        raise UserError("--codebooks goes with --prior PRIOR (a control-prior bundle)" if codebooks is not None
+                        else "simulate with one controller: --prior PRIOR or --expert RUN")
     if prior is not None and expert is not None:
-        raise UserError("simulate with one controller: --physics PRIOR or --expert RUN, not both")
+        raise UserError("simulate with one controller: --prior PRIOR or --expert RUN, not both")
     if expert is not None and codebooks is not None:
-        raise UserError("--codebooks selects a prior's codebooks: it goes with --physics PRIOR, not --expert")
-    option, path = ("--physics", prior) if prior is not None else ("--expert", expert)
+        raise UserError("--codebooks selects a prior's codebooks: it goes with --prior PRIOR, not --expert")
+    option, path = ("--prior", prior) if prior is not None else ("--expert", expert)
     want, what = KINDS[option]
     found = read_meta(path).get("kind")
     if found != want:
@@ -76,7 +76,7 @@ def text_to_physics(gpt, texts: list[str], out, *, prior=None, expert=None, code
     out = check_writable(out, suffixes=H5)
     kin = check_writable(kinematic_path(out), what="the kinematic motion")
     if render is not None:
-        check_writable(render, suffixes=VIDEO, what="--render (with --physics or --expert)")
+        check_writable(render, suffixes=VIDEO, what="--render (with --prior or --expert)")
     if bvh is not None:
         check_writable(bvh, suffixes=(".bvh",), what="--bvh")
     controller = load_physics_controller(prior, expert, codebooks)

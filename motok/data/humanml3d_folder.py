@@ -79,15 +79,15 @@ def _file_name(name: str, data) -> str:
     return name
 
 
-def export_humanml3d(data, out, *, pattern: str | None = None, stats: str = "train",
+def export_humanml3d(data, out, *, clips: str | None = None, stats: str = "train",
                      command: str | None = None) -> dict:
-    """Write the clips of the motion artifact ``data`` (those matching ``pattern``) as a HumanML3D
+    """Write the clips of the motion artifact ``data`` (those matching the glob ``clips``) as a HumanML3D
     folder ``out`` (new, or empty), whole or not at all. ``stats``: the split ``Mean.npy`` and
     ``Std.npy`` are computed over, ``train`` (as motok's own statistics; all clips when none is
     in train) or ``all`` (every exported clip, as HumanML3D's script does over its folder)."""
     if stats not in STATS_SPLITS:
         raise UserError(f"--stats {stats!r}: choose one of {', '.join(STATS_SPLITS)}")
-    names = select_clips(data, pattern)
+    names = select_clips(data, clips)
     out = Path(out)
     with MotionFile(data) as mf, atomic_folder(out) as tmp, make_progress("clips") as progress:
         J, sk = mf.skeleton.num_joints, mf.skeleton
@@ -122,7 +122,7 @@ def export_humanml3d(data, out, *, pattern: str | None = None, stats: str = "tra
         if not captioned:
             (tmp / TEXTS).rmdir()  # no captions at all: the reader then gives every clip the split none
         prov = Provenance(command=command or command_line(),
-                          config={"data": str(data), "pattern": pattern, "stats": stats}, inputs=hash_inputs([data]))
+                          config={"data": str(data), "clips": clips, "stats": stats}, inputs=hash_inputs([data]))
         write_json(tmp / SIDECAR, {
             "format": FORMAT, "schema_version": SCHEMA_VERSION, "kind": mf.kind, "skeleton": sk.to_dict(),
             "offsets": np.asarray(mf.offsets, dtype=float).tolist(), "fps": mf.fps, "legacy": mf.legacy,
@@ -198,7 +198,7 @@ def _stats(folder: Path, side: dict | None, dim: int):
 
 def import_humanml3d(cfg, folder: Path, out, data_root=None, command: str | None = None) -> dict:
     """``motok preprocess -d FOLDER``: a HumanML3D folder to a ``motion-dataset``. Applies the
-    preprocess config's ``pattern``, ``limit``, ``annotations`` (``auto``: the folder's own
+    preprocess config's ``clips``, ``limit``, ``annotations`` (``auto``: the folder's own
     ``texts/`` and split files), ``skeleton``, ``skip_bad``, ``reference_clip``, ``min_frames``;
     features are taken as they are, so ``fps`` must be the folder's rate (motok.json's, else
     ``npy_fps``, HumanML3D's 20). Everything is checked before the clips are read."""
@@ -239,7 +239,7 @@ def import_humanml3d(cfg, folder: Path, out, data_root=None, command: str | None
     clips: list[Clip] = []
     with make_progress("clips") as progress:
         task = progress.add_task("read", total=total)
-        for f in [f for f in files if fnmatchcase(f.stem, cfg.pattern)][:cfg.limit]:
+        for f in [f for f in files if fnmatchcase(f.stem, cfg.clips)][:cfg.limit]:
             progress.advance(task)
             if f.stem in excluded:
                 continue
@@ -250,7 +250,7 @@ def import_humanml3d(cfg, folder: Path, out, data_root=None, command: str | None
                 bad(BadInput(str(f), e))
     if not clips:
         first = f"; the first bad one: {skipped[0]['input']}: {skipped[0]['error']}" if skipped else ""
-        raise MotionFormatError(str(folder / FEATURES), f"no clip matching {cfg.pattern!r} could be read{first}")
+        raise MotionFormatError(str(folder / FEATURES), f"no clip matching {cfg.clips!r} could be read{first}")
     if side is not None and cfg.reference_clip is None:
         offsets = np.asarray(side["offsets"], dtype=np.float64)
     else:

@@ -32,9 +32,9 @@ def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad) -> tuple
     Listing a compressed tar costs one decompression, so it is listed only when there is
     something to check against (annotations or a reference clip)."""
     if ann is None and cfg.reference_clip is None:
-        known = [count_sources(p, pattern=cfg.pattern + ".*") for p in inputs]  # None: a compressed tar
+        known = [count_sources(p, pattern=cfg.clips + ".*") for p in inputs]  # None: a compressed tar
         return (None if None in known else min(sum(known), cfg.limit or sum(known))), {}, set()
-    listed = [(n, o) for p in inputs for n, o in list_sources(p) if fnmatchcase(n, cfg.pattern)][:cfg.limit]
+    listed = [(n, o) for p in inputs for n, o in list_sources(p) if fnmatchcase(n, cfg.clips)][:cfg.limit]
     names = [n for n, _ in listed]
     dup = sorted({n for n in names if names.count(n) > 1})[:5] if len(set(names)) != len(names) else []
     if dup:
@@ -45,9 +45,9 @@ def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad) -> tuple
         ann.split_of()  # a clip in two splits
         if cfg.limit is None:
             try:
-                ann.check_splits(set(names), cfg.pattern)
+                ann.check_splits(set(names), cfg.clips)
             except MotionFormatError as e:
-                raise MotionFormatError(e.source, e.message + _selection_hint(names, cfg.pattern), e.line) from None
+                raise MotionFormatError(e.source, e.message + _selection_hint(names, cfg.clips), e.line) from None
         for name, origin in listed:
             try:
                 captions[name] = [(x.text, x.tokens, x.start, x.end) for x in ann.captions(name)]
@@ -56,7 +56,7 @@ def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad) -> tuple
                 bad(BadInput(origin, e))
     if cfg.reference_clip is not None and cfg.reference_clip not in set(names) - excluded:
         raise UnknownNameError(f"reference_clip {cfg.reference_clip!r} is not among the {len(names)} clip(s) of the "
-                               f"inputs matching {cfg.pattern!r}")
+                               f"inputs matching {cfg.clips!r}")
     return len(names), captions, excluded
 
 

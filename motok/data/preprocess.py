@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from multiprocessing import get_context
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -45,11 +46,13 @@ from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skelet
 
 @dataclass
 class PreprocessConfig:
-    inputs: list[str] = field(default_factory=lambda: ["bandai-namco/bandai-namco-2.tar.xz"])
+    # Keys are named as the options that set them (-d/--data, --clips).
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {"inputs": "data", "pattern": "clips"}
+    data: list[str] = field(default_factory=lambda: ["bandai-namco/bandai-namco-2.tar.xz"])
     # "auto": the Bandai-Namco annotations for Bandai-Namco inputs only; "none" (or None): no
     # captions, split "none"; else a HumanML3D-layout folder (relative to the data root or not).
     annotations: str | None = "auto"
-    pattern: str = "*"  # clip-name glob; also decides which split entries must be present
+    clips: str = "*"  # clip-name glob; also decides which split entries must be present
     skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
     fps: float = 20.0
     # The frame rate of .npy joint arrays, which store none (HumanML3D's new_joints are 20 fps);
@@ -89,8 +92,8 @@ def check_config(cfg: PreprocessConfig) -> PreprocessConfig:
         problems.append(f"limit {cfg.limit} must be >= 1")
     if cfg.min_frames < 2:
         problems.append(f"min_frames {cfg.min_frames} must be >= 2 (features are frame differences)")
-    if not cfg.inputs:
-        problems.append("no inputs")
+    if not cfg.data:
+        problems.append("no data (-d/--data: mocap files, folders or archives)")
     if problems:
         raise UserError("; ".join(problems))
     return cfg
@@ -196,7 +199,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
     """Run the whole preprocessing; returns a summary dict (also stored in provenance)."""
     check_config(cfg)
     check_writable(out)
-    inputs = [resolve_input(p, data_root) for p in cfg.inputs]
+    inputs = [resolve_input(p, data_root) for p in cfg.data]
     for p in inputs:
         if not p.exists():
             raise MissingFileError(f"input {p} does not exist")
@@ -220,9 +223,9 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
         where = ", ".join(map(str, inputs))
         if skipped:  # --skip-bad dropped everything: say why, not only that nothing is left
             first = skipped[0]
-            raise MotionFormatError(where, f"all {len(skipped)} clip(s) matching {cfg.pattern!r} were bad ({stage}); "
+            raise MotionFormatError(where, f"all {len(skipped)} clip(s) matching {cfg.clips!r} were bad ({stage}); "
                                     f"the first: {first['input']}: {first['error']}")
-        raise MotionFormatError(where, f"no clip matching {cfg.pattern!r} could be loaded")
+        raise MotionFormatError(where, f"no clip matching {cfg.clips!r} could be loaded")
 
     # Everything that can be known before a clip is parsed is checked now, not after minutes of work.
     total, captions, excluded = check_inputs(cfg, inputs, ann, bad)
@@ -231,7 +234,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
         n = 0
         for path in inputs:
             for src in iter_sources(path):
-                if not fnmatchcase(src.name, cfg.pattern):
+                if not fnmatchcase(src.name, cfg.clips):
                     continue
                 if cfg.limit is not None and n >= cfg.limit:
                     return

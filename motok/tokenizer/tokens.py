@@ -37,7 +37,7 @@ def _tokenizer_id(run: Path, meta: dict, out: Path) -> dict:
 def _check_codebooks(model, num_codebooks: int | None) -> int:
     n = model.num_codebooks
     if num_codebooks is not None and not 1 <= num_codebooks <= n:
-        raise TokenizerError(f"--num-codebooks {num_codebooks}: the tokenizer has {n} codebook(s)")
+        raise TokenizerError(f"--codebooks {num_codebooks}: the tokenizer has {n} codebook(s)")
     return num_codebooks or n
 
 

@@ -78,7 +78,7 @@ def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
 
 def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
                  split: str | None = None, render=None, device: str | None = None, task: str | None = None) -> dict:
-    """``motok control eval --task T --run RUN``: the task's evaluation of the policy in ``run``
+    """``motok control eval --task T --policy RUN``: the task's evaluation of the policy in ``run``
     on ``episodes`` episodes (start states from its clips, or those of ``data`` / ``clips`` /
     ``split``), written to ``RUN/eval_TASK[_SPLIT].json`` with the checkpoint and provenance.
     ``task``, when given, must be the run's (checked before any work)."""

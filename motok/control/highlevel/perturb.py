@@ -237,7 +237,7 @@ def perturb(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], e
 
 
 def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: PerturbConfig | None = None) -> dict:
-    """``motok control perturb --run RUN``: the thrown-ball test of a trained task policy, zero-shot:
+    """``motok control perturb --policy RUN``: the thrown-ball test of a trained task policy, zero-shot:
     the same policy, prior and task, on the run's humanoid with a pool of balls added
     (:func:`motok.sim.balls.build_ball_model`, written next to the run); ``render``: a video of
     environment 0's first episode with the balls and the task's markers. Written to

@@ -237,7 +237,7 @@ def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None 
     from motok.sim.reference import load_library
 
     if prior is not None and prior not in KINDS:
-        raise UserError(f"--prior must be one of {', '.join(KINDS)}, not {prior!r}")
+        raise UserError(f"--kind must be one of {', '.join(KINDS)}, not {prior!r}")
     if prior and cfg.prior.kind and cfg.prior.kind != prior:
         raise UserError(f"the recipe is for a {cfg.prior.kind!r} prior, not {prior!r}")
     cfg.prior.kind = prior or cfg.prior.kind

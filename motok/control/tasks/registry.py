@@ -1,5 +1,5 @@
 """The table of tasks a high-level policy learns over a frozen prior (``motok control train --task
-NAME``, ``motok control eval --task NAME --run RUN``, a recipe's ``tasks:`` section).
+NAME``, ``motok control eval --task NAME --policy RUN``, a recipe's ``tasks:`` section).
 
 Every file of this folder but :data:`HELPERS` and the imitation task is a task, and declares
 ``SPEC``, a :class:`TaskSpec`: its config, its task class, its evaluation, and what a full

@@ -38,8 +38,10 @@ LEVERS = {
     "feet1": ([], ["task.reward.k_feet=1.0"]),  # foot-velocity term in the imitation reward
     "feet3": ([], ["task.reward.k_feet=3.0"]),
     "filter0.3": ([], ["env.target_filter=0.3"]),  # a stronger low-pass on the PD targets
+    "filter0.2": ([], ["env.target_filter=0.2"]),
     "kv2": (["derivative_time=0.2"], []),  # twice the PD damping
     "ankle0.5": (["ankle_stiffness_scale=0.5"], []),  # compliant ankles (0.3 cannot stand)
+    "filter0.3+ankle0.5": (["ankle_stiffness_scale=0.5"], ["env.target_filter=0.3"]),
     "elliptic": (["cone=elliptic", "impratio=10"], []),  # harder friction (1.7x the physics cost)
     "noslip": (["noslip_iterations=10"], []),
     "elliptic3": (["cone=elliptic", "impratio=3"], []),  # elliptic at impratio 10 diverges standing

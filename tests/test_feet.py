@@ -181,3 +181,26 @@ def test_a_resume_on_another_contact_model_is_refused(small_dataset, body, tmp_p
     assert json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 1  # untouched
     r = CliRunner().invoke(app, [*args, "--resume"])  # its own world: goes on
     assert r.exit_code == 0 and json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 2
+
+
+def test_the_recipes_humanoid_section_builds_the_world_and_a_resume_keeps_it(small_dataset, tmp_path):
+    """``humanoid.ankle_stiffness_scale`` in an expert recipe builds that humanoid for the new run (its
+    MJCF in the run, the bundle's config saying so); resuming with another value is refused, naming it."""
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+    from motok.sim.humanoid import load_humanoid
+
+    run = tmp_path / "expert"
+    args = ["--quiet", "control", "expert", "train", "-d", str(small_dataset), "--clips", "dataset-2_walk_normal_001",
+            "--set", "env.num_envs=4", "--set", "ppo.horizon=4", "--set", "ppo.minibatch_size=16",
+            "--set", "iterations=2", "-o", str(run)]
+    r = CliRunner().invoke(app, [*args, "--set", "humanoid.ankle_stiffness_scale=0.5", "--until", "1"])
+    assert r.exit_code == 0, r.output
+    hum = load_humanoid(run / "humanoid.xml")
+    assert hum.meta["config"]["ankle_stiffness_scale"] == 0.5
+    assert json.loads((run / "bundle.json").read_text())["config"]["humanoid"]["ankle_stiffness_scale"] == 0.5
+    r = CliRunner().invoke(app, [*args, "--set", "humanoid.ankle_stiffness_scale=0.7", "--resume"])
+    assert r.exit_code == 2 and "ankle_stiffness_scale: 0.5 -> 0.7" in r.output, r.output
+    r = CliRunner().invoke(app, [*args, "--set", "humanoid.ankle_stiffness_scale=0.5", "--resume"])
+    assert r.exit_code == 0 and json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 2

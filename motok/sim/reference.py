@@ -220,15 +220,17 @@ def load_library(hum: Humanoid, data_path, control_hz: float | None = None, clip
     return lib
 
 
-def humanoid_for(data_path, cache_dir=None):
-    """The default humanoid of a dataset (built once, cached next to the reference libraries).
-    The cache key holds the builder's default configuration, so a new default builds a new file."""
+def humanoid_for(data_path, cache_dir=None, cfg: HumanoidConfig | None = None):
+    """The humanoid of a dataset built with ``cfg`` (the builder's defaults unless given), built once
+    and cached next to the reference libraries. The cache key holds the configuration, so a new
+    default, or another configuration, builds a new file."""
     cache = Path(cache_dir) if cache_dir else default_cache_dir()
-    cfg = hashlib.sha256(json.dumps(asdict(HumanoidConfig()), sort_keys=True).encode()).hexdigest()[:8]
-    path = cache / f"{Path(data_path).stem}-{sha256_file(data_path)[:16]}-{cfg}.xml"
+    cfg = cfg or HumanoidConfig()
+    key = hashlib.sha256(json.dumps(asdict(cfg), sort_keys=True).encode()).hexdigest()[:8]
+    path = cache / f"{Path(data_path).stem}-{sha256_file(data_path)[:16]}-{key}.xml"
     if not path.exists():
         with atomic_path(path) as tmp:
-            build_humanoid(data_path, tmp)
+            build_humanoid(data_path, tmp, cfg)
     return load_humanoid(path)
 
 

@@ -17,7 +17,7 @@ from motok.control.rl.ppo import PPOConfig
 from motok.control.rl.sampling import SamplingConfig
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.sim.env import SimConfig
-from motok.sim.humanoid import Humanoid
+from motok.sim.humanoid import Humanoid, HumanoidConfig
 
 KIND = "control-expert"
 register_kind(KIND, (1,))
@@ -52,6 +52,9 @@ class ExpertConfig:
     net: NetConfig = field(default_factory=NetConfig)  # the encoder-decoder policy and critic
     amp: AMPConfig = field(default_factory=AMPConfig)  # the style discriminator
     sampling: SamplingConfig = field(default_factory=SamplingConfig)  # difficulty-weighted start clips
+    # The world a new run builds from --data (contact model, PD gains; docs/sim.md): its MJCF goes
+    # into the run, and a resume keeps it (a different one here is refused, not applied).
+    humanoid: HumanoidConfig = field(default_factory=HumanoidConfig)
 
 
 def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:

@@ -16,8 +16,9 @@ optimisers, replay buffer, torch/numpy/task RNG states.
 
 from __future__ import annotations
 
+import json
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
 
@@ -35,11 +36,12 @@ from motok.control.rl.rollout import Collector
 from motok.control.rl.sampling import DifficultySampler, failures
 from motok.control.tasks.imitation import (ImitationTask, ImitationTaskConfig, eval_metrics, evaluate, subset,
                                           summarise)
+from motok.config import from_dict
 from motok.data.dataset import select_clips
 from motok.distributed import Dist, gather
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
-from motok.sim.humanoid import Humanoid, config_difference, load_humanoid
+from motok.sim.humanoid import Humanoid, HumanoidConfig, config_difference, load_humanoid
 from motok.sim.reference import ReferenceLibrary
 
 
@@ -213,6 +215,13 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
     run = Path(run)
     if resume and (run / "humanoid.xml").exists():
         hum = load_humanoid(run / "humanoid.xml")
+        built = hum.meta.get("config", {})
+        # as the MJCF's metadata stores it (JSON: tuples are lists); older builds lack newer fields
+        wanted = {k: v for k, v in json.loads(json.dumps(asdict(cfg.humanoid))).items() if k in built}
+        if humanoid is None and wanted != {k: built[k] for k in wanted}:
+            what = ", ".join(f"{k}: {built[k]} -> {v}" for k, v in wanted.items() if built[k] != v)
+            raise UserError(f"{run} was trained on another humanoid than the recipe's humanoid section asks "
+                            f"for ({what}); resume with the recipe it was trained with, or train a new run")
         if humanoid is not None:  # a resume continues in the run's world, never silently in another
             other = load_humanoid(humanoid)
             if runner.mjcf_hash(other) != runner.mjcf_hash(hum):
@@ -222,6 +231,9 @@ def train_from_data(cfg: ExpertConfig, data, run, *, clips: str | None = None, s
     elif init is not None:  # the warm start's humanoid, so its weights mean the same joints
         hum = load_humanoid(Path(init) / "humanoid.xml")
     else:
-        hum = load_humanoid(humanoid) if humanoid else humanoid_for(data)
+        hum = load_humanoid(humanoid) if humanoid else humanoid_for(data, cfg=cfg.humanoid)
+    if humanoid is not None or init is not None:  # the bundle records the world the run really has
+        cfg.humanoid = from_dict(HumanoidConfig, {k: v for k, v in hum.meta.get("config", {}).items()
+                                                  if k in HumanoidConfig.__dataclass_fields__})
     lib = load_library(hum, data, control_hz=cfg.env.control_hz, clips=select_clips(data, clips, split))
     return train(cfg, run, hum, lib, resume=resume, until=until, data=data, init=init)

@@ -52,7 +52,7 @@ def encode_window(planner, pos_mj: np.ndarray) -> np.ndarray:
     return planner.tokenizer.encode_features(torch.from_numpy(f.features)[None], 1)[0, :, 0].numpy()
 
 
-def test_without_replans_the_loop_is_the_open_loop_to_the_bit(tree, controllers, tmp_path):
+def test_without_replans_the_loop_is_the_open_loop_to_the_bit(tree, controllers, small_dataset, tmp_path, script):
     """No --replan-every, no --then, a motion the GPT holds whole: the closed loop's first plans are
     `gpt sample`'s samples and their tracking is `gpt sample --prior`'s, to the bit; and made again
     from the open loop's kinematic file (--data: texts, lengths and seeds from its labels) too."""
@@ -80,6 +80,10 @@ def test_without_replans_the_loop_is_the_open_loop_to_the_bit(tree, controllers,
                 assert p.clip(f"{n}.plan00").labels["codes"] == codes[n]  # the first plan is the sample
     for n in names:
         assert rep["per_clip"][n]["mpjpe_mm"] == again["per_clip"][n]["mpjpe_mm"]
+    # scripts/track_failures.py reads the report of a generated set made again (none of these has a source clip)
+    report = json.loads((tmp_path / "again.closed-loop.json").read_text())
+    assert report["provenance"]["config"]["data"] == str(tmp_path / "open.kinematic.h5")
+    assert script("track_failures").content_of(report, small_dataset, "train") == {}
 
 
 def test_a_pushed_character_is_where_the_next_plan_starts(steady):

@@ -1,7 +1,8 @@
 """Which motions a tracking fails on, and how (docs/results.md, "Text to physics").
 
 Reads the ``.track.json`` reports that ``motok control track`` wrote for the real split and for
-GPT samples of it (``motok eval t2m --save-generated``), groups every clip by the ``content``
+GPT samples of it (``motok eval t2m --save-generated``), or the ``.closed-loop.json`` of those
+samples made again in the closed loop (``motok gpt sample -d ... --closed-loop``), groups every clip by the ``content``
 label of its dataset clip (a GPT sample through its ``source`` clip, the caption it was made
 from) and prints, per group, the share tracked to the end and, before the end or the failure,
 the median MPJPE and G-MPJPE. With ``--replay N``, up to N failed clips per group of the first
@@ -34,7 +35,8 @@ def content_of(report: dict, data: str, split: str) -> dict[str, str]:
         sd = load_split(mf, split)  # the captioned clips, in the order `eval t2m` numbers its sources
         content = [json.loads(lab).get("content", "?") if lab else "?" for lab in sd.labels]
         by_name = dict(zip(sd.names, content))
-    motion = report["provenance"]["config"]["motion"]
+    cfg = report["provenance"]["config"]
+    motion = cfg.get("motion") or cfg["data"]  # what was tracked; a closed loop's: the generated set it made again
     if all(n in by_name for n in report["per_clip"]):
         return {n: by_name[n] for n in report["per_clip"]}
     with MotionFile(motion) as mf:  # GPT samples: labels role, sample, source, text
@@ -87,7 +89,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("-d", "--data", required=True, help="The motion-dataset the motions came from.")
     ap.add_argument("--split", default="test")
-    ap.add_argument("--report", action="append", required=True, help="A .track.json (repeatable).")
+    ap.add_argument("--report", action="append", required=True, help="A .track.json or .closed-loop.json (repeatable).")
     ap.add_argument("--prior", help="The prior that tracked the first report (for --replay).")
     ap.add_argument("--replay", type=int, default=0, help="Failed clips per group to play again (first report).")
     args = ap.parse_args()

@@ -125,6 +125,35 @@ def test_target_length_seeds_and_filters():
     assert torch.isfinite(filter_logits(lg, top_p=1e-3)).sum() == 1  # the best code always survives
 
 
+def test_a_prefix_is_continued_as_if_sampled():
+    """Greedy continuation of a sequence's first codes gives back the rest of it, with and without
+    the cache and with guidance's doubled rows; a row's generator goes on from call to call."""
+    model = tiny().eval()
+    text = torch.randn(2, TEXT_DIM)
+    whole = generate(model, text, target_len=torch.tensor([9, 9]), argmax=True)
+    head = torch.stack([c[:4] for c in whole.codes])
+    for cache in (True, False):
+        rest = generate(model, text, target_len=torch.tensor([9, 9]), argmax=True, prefix=head, use_cache=cache)
+        assert [c.tolist() for c in rest.codes] == [c[4:].tolist() for c in whole.codes]
+    torch.manual_seed(1)
+    guided = MotionGPT(GPTConfig(num_layers=2, dim=32, heads=4, block_size=12, dropout=0.0), K, TEXT_DIM,
+                       null_text=True).eval()
+    with torch.no_grad():
+        guided.null_text.normal_()
+    whole = generate(guided, text, target_len=torch.tensor([9, 9]), argmax=True, guidance=2.5)
+    rest = generate(guided, text, target_len=torch.tensor([9, 9]), argmax=True, guidance=2.5,
+                    prefix=torch.stack([c[:4] for c in whole.codes]))
+    assert [c.tolist() for c in rest.codes] == [c[4:].tolist() for c in whole.codes]
+    g = torch.Generator().manual_seed(3)
+    first = generate(model, text[:1], target_len=torch.tensor([3]), seeds=[g]).codes[0]
+    assert first.tolist() == generate(model, text[:1], target_len=torch.tensor([3]), seeds=[3]).codes[0].tolist()
+    assert not torch.equal(g.get_state(), torch.Generator().manual_seed(3).get_state())  # its stream went on
+    from motok.gpt.data import GPTError
+
+    with pytest.raises(GPTError, match="leaves no position"):
+        generate(model, text, prefix=torch.zeros(2, model.max_codes, dtype=torch.long))
+
+
 def test_paper_recipe_is_the_paper_size():
     cfg = load_config(TrainConfig, "recipes/gpt/paper.yaml")
     assert (cfg.model.num_layers, cfg.model.dim, cfg.model.heads, cfg.model.block_size) == (18, 1024, 16, 51)

@@ -16,7 +16,6 @@ from motok.data.dataset import MotionFile
 from motok.errors import UserError
 from motok.eval.metrics import mpjpe
 import tiny_runs
-from tiny_runs import tiny_prior_bundle
 
 tree = tiny_runs.tree  # the tiny tokenizer + GPT (a module fixture)
 
@@ -26,22 +25,7 @@ TEXTS = ["a person walks forward", "someone waves"]
 SAMPLING = dict(num_samples=1, seed=3, seconds=1.6)  # 8 tokens at rate 4: 32 frames at 20 fps
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """The reference-library cache of this module's runs, away from the user's ~/.cache."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("MOTOK_CACHE", str(tmp_path_factory.mktemp("cache")))
-        yield
-
-
-@pytest.fixture(scope="module")
-def controllers(cache, hum, small_dataset, tmp_path_factory):
-    """``(prior, expert)`` folders: a 2-iteration hybrid prior and the 1-iteration expert it was distilled from."""
-    from motok.sim.reference import load_library
-
-    lib = load_library(hum, small_dataset, clips=[0, 1, 2])
-    root = tmp_path_factory.mktemp("t2p-runs")
-    return tiny_prior_bundle(root, hum, lib, small_dataset), root / "expert"
+cache, controllers = tiny_runs.cache, tiny_runs.controllers  # the reference cache; (prior, expert)
 
 
 @pytest.fixture(scope="module")

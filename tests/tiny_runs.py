@@ -38,6 +38,24 @@ def tree(tmp_path_factory, small_dataset):
     return root / "runs"
 
 
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """The reference-library cache of a module's runs, away from the user's ~/.cache."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MOTOK_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
+
+
+@pytest.fixture(scope="module")
+def controllers(cache, hum, small_dataset, tmp_path_factory):
+    """``(prior, expert)`` folders: a 2-iteration hybrid prior and the 1-iteration expert it was distilled from."""
+    from motok.sim.reference import load_library
+
+    lib = load_library(hum, small_dataset, clips=[0, 1, 2])
+    root = tmp_path_factory.mktemp("t2p-runs")
+    return tiny_prior_bundle(root, hum, lib, small_dataset), root / "expert"
+
+
 def small_prior_config(kind: str):
     from motok.control.priors.model import PriorConfig
 

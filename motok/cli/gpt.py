@@ -54,7 +54,12 @@ def train(
     'motok gpt sample -g runs/gpt --text "a person walks forward" -n 4 -o walk.h5 --render walk.gif --bvh walk.bvh',
     'motok gpt sample -g runs/gpt --texts-file prompts.txt --seconds 4 --top-k 20 -o prompts.h5 --json',
     'motok gpt sample -g runs/gpt --text "a person walks forward" --prior runs/prior_hybrid -o walk_sim.h5 '
-    '--render walk_sim.mp4'))
+    '--render walk_sim.mp4',
+    'motok gpt sample -g runs/gpt --text "a person walks forward" --prior runs/prior_hybrid --closed-loop '
+    '--replan-every 1 -o walk_loop.h5',
+    'motok gpt sample -g runs/gpt --text "a person walks forward" --then "4s a person waves with both hands" '
+    '--then "8s a person turns left" --seconds 10 --prior runs/prior_hybrid --closed-loop -o story.h5 '
+    '--render story.mp4'))
 @renamed(physics="--prior")
 def sample(
     gpt: Path = typer.Option(..., "--gpt", "-g", help="A GPT run folder (from `gpt train`)."),
@@ -95,6 +100,19 @@ def sample(
                                           "control-expert run instead of a prior.", required=False),
     codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
                                             "codebooks only (default: all)."),
+    closed_loop: bool = typer.Option(False, "--closed-loop", help="With --prior: re-plan from the simulated "
+                                     "character (the GPT continues the tokens of its last window) every "
+                                     "--replan-every seconds; writes OUT.plans.h5 and OUT.closed-loop.json too."),
+    replan_every: Optional[float] = typer.Option(None, "--replan-every", metavar="SECONDS",
+                                                 help="With --closed-loop: seconds between re-plans, a multiple of "
+                                                 "the token duration (default 1)."),
+    then: list[str] = typer.Option([], "--then", metavar='"TIME TEXT"',
+                                   help='With --prior: from TIME on, the motion follows TEXT, re-planned from the '
+                                   'simulated character (repeatable; times increasing, on token boundaries, before '
+                                   'the end): --then "4s a person waves".'),
+    data: Optional[Path] = data_option("With --closed-loop: a generated motion artifact (e.g. from `eval t2m "
+                                       "--save-generated`) made again in the closed loop: each clip's text, length "
+                                       "and seed.", required=False),
     as_json: bool = JsonOut,
 ):
     """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went. With
@@ -109,6 +127,15 @@ def sample(
     opts = dict(num_samples=num_samples, seed=seed, temperature=temperature, top_k=top_k, top_p=top_p,
                 argmax=argmax, seconds=seconds, render=render, bvh=bvh, tokenizer=tokenizer,
                 allow_mismatch=allow_mismatch, guidance=guidance, snap=snap)
+    if closed_loop or then or replan_every is not None or data is not None:
+        from motok.control.closed_loop import REPLAN_EVERY, check_options
+        from motok.control.closed_loop import closed_loop as _closed_loop
+        run(check_options, texts=texts, then=then, data=data, replan_every=replan_every, closed_loop=closed_loop,
+            simulated=prior is not None or expert is not None)
+        every = (REPLAN_EVERY if replan_every is None else replan_every) if closed_loop else None
+        _report_loop(run(_closed_loop, gpt, out, texts=texts, then=then, data=data, replan_every=every, prior=prior,
+                         expert=expert, codebooks=codebooks, **opts), as_json)
+        return
     if prior is None and expert is None and codebooks is None:
         _report(run(_sample, gpt, texts, out, **opts), as_json, "gpt sample")
         return
@@ -134,6 +161,27 @@ def _report_physics(summary: dict, as_json: bool):
                     f"{r['g_mpjpe_mm']:.1f} mm" + (f"; {r['error']}" if "error" in r else ""))
         results.print(escape(f"{name}: {line}"), soft_wrap=True, highlight=False)
     files = [summary["output"], f"{summary['kinematic']} (the kinematic motion)"]
+    files += ([summary["video"]] if "video" in summary else []) + summary["bvh"]
+    for f in files:
+        results.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)
+
+
+def _report_loop(summary: dict, as_json: bool):
+    """The closed loop's summary, one line per motion (how far it was tracked, its re-plans), then the files."""
+    if as_json:
+        report(summary, True, "")
+        return
+    from rich.markup import escape
+    per = summary.pop("per_clip")
+    summary.pop("provenance", None)
+    report(summary, False, "gpt sample, closed loop", hide=("output", "kinematic", "plans", "video", "bvh"))
+    for name, r in per.items():
+        how = "tracked to the end" if r["tracked_to_end"] else f"failed at {r['failed_at_s']:.2f} s"
+        at = ", ".join(f"{x['at_s']:g}" for x in r["replans"]) or "none"
+        results.print(escape(f"{name}: {how} of {r['clip_seconds']:.2f} s; MPJPE {r['mpjpe_mm']:.1f} mm; "
+                             f"re-planned at {at} s"), soft_wrap=True, highlight=False)
+    files = [summary["output"], f"{summary['kinematic']} (the reference tracked)", f"{summary['plans']} (every plan)",
+             str(Path(summary["output"]).with_name(Path(summary["output"]).stem + ".closed-loop.json"))]
     files += ([summary["video"]] if "video" in summary else []) + summary["bvh"]
     for f in files:
         results.print(f"wrote {escape(str(f))}", soft_wrap=True, highlight=False)

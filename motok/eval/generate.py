@@ -60,13 +60,14 @@ def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MCon
         for a in range(0, len(jobs), cfg.gen_batch):
             chunk = jobs[a:a + cfg.gen_batch]
             tl = torch.tensor([max(1, j[1]) for j in chunk]) if cfg.gt_length else None
+            seeds = [cfg.seed * 1_000_003 + a + b for b in range(len(chunk))]
             g = generate(model, emb[[row_of[j[0]] for j in chunk]], target_len=tl, temperature=cfg.temperature,
-                         top_k=cfg.top_k_sampling, top_p=cfg.top_p, seeds=[cfg.seed * 1_000_003 + a + b
-                                                                           for b in range(len(chunk))])
+                         top_k=cfg.top_k_sampling, top_p=cfg.top_p, seeds=seeds)
             for b, (text, _, lab) in enumerate(chunk):
                 feats = tok.decode_features(g.codes[b].view(1, -1, 1), 1)[0].numpy()
+                # the seed travels with the sample, so `gpt sample --closed-loop -d` redraws it exactly
                 clips.append(features_to_clip(f"gen-{a + b:06d}", feats, skeleton, bool(tex["legacy"]),
-                                              labels=lab, captions=[(text, "", 0.0, 0.0)]))
+                                              labels={**lab, "seed": seeds[b]}, captions=[(text, "", 0.0, 0.0)]))
             bar.advance(task, len(chunk))
     out = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix="motok-eval-")) / "generated.h5"
     prov = Provenance(command=command or command_line(),

@@ -14,6 +14,10 @@ emitted End is fed Pad and ignored while the others go on, and the loop stops wh
   or how many samples share the batch, and ``--seed s`` sample ``j`` equals ``--seed s + j`` sample 0.
 - With the key/value cache each step runs one position; without it (benchmarks, tests) the
   whole prefix is recomputed; both give the same logits.
+- Continuation (``prefix``): the rows start from given codes instead of from the text alone, as
+  if the model had sampled them (the closed loop of ``motok.control.closed_loop`` feeds it the
+  tokens of the simulated motion); ``target_len`` then counts them, and what is returned is
+  the codes after them. Without a prefix nothing changes, to the bit.
 """
 
 from __future__ import annotations
@@ -69,11 +73,14 @@ class Generation:
 @torch.no_grad()
 def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor | None = None,
              temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None,
-             argmax: bool = False, seeds: list[int] | None = None, use_cache: bool = True,
-             record_logits: bool = False, guidance: float | None = None) -> Generation:
+             argmax: bool = False, seeds: list | None = None, use_cache: bool = True,
+             record_logits: bool = False, guidance: float | None = None,
+             prefix: torch.Tensor | None = None) -> Generation:
     """Autoregressive codes for each row of ``text`` (B, text_dim); see the module docstring.
     ``guidance`` (default: the model's own, from its training config) != 1 applies classifier-free
-    guidance."""
+    guidance. ``seeds``: an int per row, or a ``torch.Generator`` per row whose stream goes on
+    from call to call (a closed loop's successive plans). ``prefix`` (B, P): codes every row
+    continues from; the codes returned are the new ones only."""
     model.eval()
     B, end, pad, cap = text.shape[0], model.end_id, model.pad_id, model.max_codes
     dev = text.device
@@ -82,7 +89,11 @@ def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor |
     cfg_on = g_scale != 1.0
     if target_len is not None:
         target_len = torch.as_tensor(target_len, device=dev).clamp(1, cap)
-    gens = [torch.Generator().manual_seed(int(s)) for s in (seeds if seeds is not None else range(B))]
+    gens = [s if isinstance(s, torch.Generator) else torch.Generator().manual_seed(int(s))
+            for s in (seeds if seeds is not None else range(B))]
+    P = 0 if prefix is None else int(prefix.shape[1])
+    if P >= cap:
+        raise GPTError(f"a prefix of {P} codes leaves no position to generate (the model holds {cap})")
     # With guidance the batch holds every row twice: with its text, then with the null text.
     rows_text = torch.cat([text, text]) if cfg_on else text
     drop = torch.arange(2 * B, device=dev) >= B if cfg_on else None
@@ -91,16 +102,17 @@ def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor |
     def step(lg: torch.Tensor) -> torch.Tensor:  # l_u + g (l_c - l_u), Ho & Salimans 2022, Eq. 6 on logits
         return lg[B:] + g_scale * (lg[:B] - lg[B:]) if cfg_on else lg
 
-    logits = step(model(rows_text, None, cache, drop_text=drop)[:, -1])
-    seq = torch.empty(B, 0, dtype=torch.long, device=dev)
+    seq = torch.empty(B, 0, dtype=torch.long, device=dev) if not P else prefix.to(dev, torch.long)
+    fed = None if not P else torch.cat([seq, seq]) if cfg_on else seq  # text and prefix in one call
+    logits = step(model(rows_text, fed, cache, drop_text=drop)[:, -1])
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     lengths = torch.full((B,), cap, dtype=torch.long, device=dev)
     recorded = []
-    for t in range(cap + 1):
+    for t in range(P, cap + 1):
         if record_logits:
             recorded.append(logits.float().cpu())
         lg = logits.float().clone()
-        ban_end = torch.full((B,), t == 0, device=dev) if target_len is None else t < target_len
+        ban_end = torch.full((B,), t == P, device=dev) if target_len is None else t < target_len
         force_end = torch.full((B,), t >= cap, device=dev) if target_len is None else t >= target_len
         lg[ban_end, end] = float("-inf")
         lg = filter_logits(lg, 1.0 if argmax else temperature, top_k, top_p)
@@ -122,7 +134,7 @@ def generate(model: MotionGPT, text: torch.Tensor, *, target_len: torch.Tensor |
         else:
             out = model(rows_text, fed, drop_text=drop)
         logits = step(out[:, -1])
-    return Generation([seq[b, :lengths[b]].cpu() for b in range(B)], recorded, seq.shape[1] + 1)
+    return Generation([seq[b, P:lengths[b]].cpu() for b in range(B)], recorded, seq.shape[1] + 1 - P)
 
 
 def check_guidance(model: MotionGPT, guidance: float) -> None:
@@ -136,6 +148,11 @@ def check_guidance(model: MotionGPT, guidance: float) -> None:
 
 def _slug(text: str, n: int = 40) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:n] or "text"
+
+
+def sample_name(i: int, text: str, j: int) -> str:
+    """The clip name of sample ``j`` of text ``i``: ``03-a-person-walks-forward-01``."""
+    return f"{i:02d}-{_slug(text)}-{j:02d}"
 
 
 def _numbered(path: Path, names: list[str], k: int) -> Path:
@@ -244,7 +261,7 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
     tex = tok_meta["extra"]
     skeleton = Skeleton.from_dict(tex["skeleton"], source=f"{tok_run}/bundle.json")
     offsets = np.asarray(tex["offsets"], dtype=np.float32)
-    names = [f"{i:02d}-{_slug(texts[i])}-{j:02d}" for i, j in rows]
+    names = [sample_name(i, texts[i], j) for i, j in rows]
     clips = []
     for (i, j), name, c in zip(rows, names, codes):
         idx = c.view(1, -1, 1)

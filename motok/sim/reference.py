@@ -178,19 +178,35 @@ def build_library(hum: Humanoid, data_path, control_hz: float | None = None, cli
             idx = list(range(len(mf))) if clips is None else [mf.index(c) for c in clips]
         except KeyError as e:
             raise ReferenceError(e.args[0]) from None
-        names, parts = [], {k: [] for k in ReferenceLibrary.ARRAYS}
-        for i in idx:
-            joints = np.asarray(mf.frames("joints", i), dtype=np.float64)
-            qpos = clip_qpos(joints, hum, mf.fps, hz)
-            res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
-            qvel = _qvel(hum.model, qpos, 1.0 / hz)
-            st = body_states(hum, qpos, qvel)
-            for k, v in dict(qpos=qpos, qvel=qvel, joints=to_mj(res), **st).items():
-                parts[k].append(v)
-            names.append(mf.names[i])
+        return library_from_joints(hum, [mf.names[i] for i in idx], (mf.frames("joints", i) for i in idx),
+                                   mf.fps, hz)
+
+
+def library_from_joints(hum: Humanoid, names: list[str], joints, fps: float, control_hz: float) -> ReferenceLibrary:
+    """The library of clips given as joint positions ``(T, J, 3)`` (dataset coordinates, at
+    ``fps``), one per name: what :func:`build_library` does with a file's clips, for motion held
+    in memory (the plans of a closed loop)."""
+    hz = float(control_hz)
+    parts = {k: [] for k in ReferenceLibrary.ARRAYS}
+    for j in joints:
+        j = np.asarray(j, dtype=np.float64)
+        qpos = clip_qpos(j, hum, fps, hz)
+        res = resample_positions(j, fps, hz) if fps != hz else j
+        qvel = _qvel(hum.model, qpos, 1.0 / hz)
+        st = body_states(hum, qpos, qvel)
+        for k, v in dict(qpos=qpos, qvel=qvel, joints=to_mj(res), **st).items():
+            parts[k].append(v)
     lengths = [len(p) for p in parts["qpos"]]
-    return ReferenceLibrary(names=names, fps=hz, starts=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+    return ReferenceLibrary(names=list(names), fps=hz, starts=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
                             **{k: np.concatenate(v) for k, v in parts.items()})
+
+
+def concat_libraries(libs: list[ReferenceLibrary]) -> ReferenceLibrary:
+    """One library holding the clips of ``libs`` in order (host arrays, one rate)."""
+    lengths = np.concatenate([lb.lengths for lb in libs])
+    return ReferenceLibrary(names=[n for lb in libs for n in lb.names], fps=libs[0].fps,
+                            starts=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+                            **{k: np.concatenate([getattr(lb, k) for lb in libs]) for k in ReferenceLibrary.ARRAYS})
 
 
 def default_cache_dir() -> Path:

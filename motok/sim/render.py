@@ -104,7 +104,8 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
                 pos, rgba, radius = markers
                 k = min(t, len(pos) - 1)
                 _add_markers(renderer.scene, pos[k], rgba[k], radius)
-            yield _caption(renderer.render(), title)
+            yield _caption(renderer.render(), title if title is None or isinstance(title, str)
+                           else title[min(t, len(title) - 1)])
     finally:
         renderer.close()
 
@@ -123,14 +124,16 @@ def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
     return np.asarray(im)
 
 
-def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title: str | None = None,
+def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title=None,
                       ghost: np.ndarray | None = None, size=(640, 480), backend: str = "auto",
                       markers: np.ndarray | None = None, marker_rgba=(0.9, 0.2, 0.2, 0.8),
                       marker_radius: float = 0.08) -> tuple[Path, str]:
     """Render ``qpos (T, nq)`` to ``out`` (.mp4 or .gif); returns the path and the backend used
     (``mujoco`` or ``stick``). ``backend="stick"`` forces the fallback. ``markers`` ``(T, K, 3)``
     are world points drawn as spheres (a task's targets, keyframe joints, a head target), coloured
-    by ``marker_rgba``: one colour, ``(K, 4)`` or ``(T, K, 4)``; the stick figure leaves them out."""
+    by ``marker_rgba``: one colour, ``(K, 4)`` or ``(T, K, 4)``; the stick figure leaves them out.
+    ``title``: one for the whole video, or one per frame (a closed loop's prompt of each moment;
+    the stick figure draws the first)."""
     out = Path(out)
     if out.suffix.lower() not in SUFFIXES:
         raise UserError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
@@ -161,5 +164,6 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
     from motok.sim.reference import body_states
 
     joints = to_data(body_states(hum, qpos, np.zeros((len(qpos), hum.model.nv)))["body_pos"])
-    render_motion(joints, hum.skeleton.parents, out, fps=fps, title=title, size=size)
+    render_motion(joints, hum.skeleton.parents, out, fps=fps, title=title if title is None or isinstance(title, str)
+                  else title[0], size=size)
     return out, "stick"

@@ -106,6 +106,17 @@ class ImitationTask(Task):
         self.limit[ids] = xp(f).clip(L.lengths[c] - 1 - f - K, None, self.max_steps)
         self._goal[ids] = imitation_goal(self.env.bodies.take(ids), self.reference(self.clip[ids, None], self._ahead(ids)))
 
+    def follow(self, lib: ReferenceLibrary, ids) -> None:
+        """Go on in environments ``ids`` along clip ``i`` of ``lib`` for environment ``i``, from its
+        frame 0, without touching the physics: the state the simulation reached is the start (a
+        closed loop hands the controller each new plan this way). Every environment must be on
+        clip ``i`` of the library it follows; the others keep their clip and frame."""
+        check_rate(lib, self.env.control_hz)
+        self.lib, self._host_lengths = lib, host_lengths(lib)
+        self.clip[ids], self.frame[ids], self.steps[ids] = ids, 0, 0
+        self.limit[ids] = xp(lib.lengths).clip(lib.lengths[ids] - 1 - self.cfg.goal_frames, None, self.max_steps)
+        self._goal[ids] = imitation_goal(self.env.bodies.take(ids), self.reference(self.clip[ids, None], self._ahead(ids)))
+
     def goal(self):
         return copy(self._goal)
 
@@ -173,11 +184,18 @@ def policy_device(policy):
 
 
 def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfig, action: ActionConfig,
-         keep_qpos: bool = False, sole: Soles | None = None) -> dict:
+         keep_qpos: bool = False, sole: Soles | None = None, replan=None) -> dict:
     """One batch of clips ``ids`` from frame 0 until each ends or fails: simulated and reference body
     positions ``(N, T + 1, J, 3)`` with the ``alive`` mask of the frames each clip played, the
-    first environment's qpos when ``keep_qpos``, and with ``sole`` the simulated and reference sole
-    corners ``(N, T + 1, K, 3)`` (``sole_sim``, ``sole_ref``; ``motok.sim.soles``)."""
+    first environment's qpos (and its reference's, ``ref_qpos``) when ``keep_qpos``, and with
+    ``sole`` the simulated and reference sole corners ``(N, T + 1, K, 3)`` (``sole_sim``,
+    ``sole_ref``; ``motok.sim.soles``).
+
+    ``replan(steps, env, pos, active)``, called after every step with the environment, the body
+    positions so far (a list of ``(N, J, 3)``, the start state first) and the environments still
+    playing, may return
+    ``(library, envs)``: those environments then follow the new library from where they are
+    (:meth:`ImitationTask.follow`; ``ids`` must be ``0 .. N - 1``). Without it, nothing changes."""
     N = len(ids)
     # Host arrays whatever the training used (an evaluation is not the hot path); the policy stays where it is.
     env = HumanoidEnv(hum, replace(sim, num_envs=N, on_device=False))
@@ -187,6 +205,7 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
     mdp = TaskEnv(env, it, partial(pd_targets, action))
     obs, goal = mdp.reset(clips=ids, frames=0)
     pos, ref, qpos = [env.bodies.pos.copy()], [lib.body_pos[lib.starts[ids]]], [env.qpos[0].copy()]
+    ref_qpos = [lib.qpos[lib.starts[ids[0]]]]
     corners = []
 
     def keep_corners(frames):
@@ -209,11 +228,19 @@ def play(hum, ac, lib, ids: np.ndarray, sim: SimConfig, task: ImitationTaskConfi
         alive.append(active & ~np.asarray(info["diverged"], bool))
         if keep_qpos:
             qpos.append(env.qpos[0].copy())
+            ref_qpos.append(lib.qpos[frames[0]])
         played += active
         success |= active & trunc
         active &= ~(term | trunc)
+        new = replan(len(pos) - 1, env, pos, active.copy()) if replan is not None and active.any() else None
+        if new is not None:
+            lib, envs = new
+            it.follow(lib, envs)
+            goal = it.goal()
     out = {"pos": np.stack(pos, 1), "ref": np.stack(ref, 1), "alive": np.stack(alive, 1), "played": played,
            "success": success, "worst": worst, "qpos": np.stack(qpos), "dt": env.dt}
+    if keep_qpos:
+        out["ref_qpos"] = np.stack(ref_qpos)
     if sole is not None:
         out["sole_sim"], out["sole_ref"] = (np.stack([c[k] for c in corners], 1) for k in (0, 1))
     return out

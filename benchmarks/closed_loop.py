@@ -4,7 +4,7 @@ and their ratio.
 
 1. open loop: ``gpt sample --prior`` (:func:`motok.control.text_to_physics.text_to_physics`):
    sample the whole motion, then track it;
-2. closed loop: ``gpt sample --prior --closed-loop`` (:func:`motok.control.closed_loop.closed_loop`):
+2. closed loop: ``gpt sample --prior --closed-loop`` (:func:`motok.control.closed_loop.loop.closed_loop`):
    re-plan every ``--replan-every`` seconds from the simulated character.
 
 Both calls are timed whole (loading the runs, generating, simulating, writing), best of
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from motok.control.closed_loop import closed_loop
+from motok.control.closed_loop.loop import closed_loop
 from motok.control.text_to_physics import text_to_physics
 
 

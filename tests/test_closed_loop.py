@@ -30,7 +30,7 @@ SAMPLING = dict(num_samples=1, seed=3, seconds=1.6)  # 8 tokens at rate 4: 32 fr
 def steady(tree, controllers):
     """``(planner, controller)``: the tiny GPT ready to plan and the prior with its failure test off,
     so the character plays every re-plan however badly it tracks."""
-    from motok.control.closed_loop import clock_of, load_planner
+    from motok.control.closed_loop.loop import clock_of, load_planner
     from motok.control.text_to_physics import load_physics_controller
 
     ctrl = load_physics_controller(controllers[0])
@@ -56,7 +56,7 @@ def test_without_replans_the_loop_is_the_open_loop_to_the_bit(tree, controllers,
     """No --replan-every, no --then, a motion the GPT holds whole: the closed loop's first plans are
     `gpt sample`'s samples and their tracking is `gpt sample --prior`'s, to the bit; and made again
     from the open loop's kinematic file (--data: texts, lengths and seeds from its labels) too."""
-    from motok.control.closed_loop import closed_loop
+    from motok.control.closed_loop.loop import closed_loop
     from motok.control.text_to_physics import text_to_physics
 
     text_to_physics(tree / "gpt", TEXTS, tmp_path / "open.h5", prior=controllers[0], **SAMPLING)
@@ -91,10 +91,10 @@ def test_a_pushed_character_is_where_the_next_plan_starts(steady):
     conditions the GPT on the tokenizer's encoding of the simulated window (the push in it), and
     the new plan starts at the pushed root and heading, far from where the old plan had got to;
     the physics goes on from its state (no reset at the re-plan)."""
-    from motok.control.closed_loop import run
-    from motok.control.timeline import timeline_rows
+    from motok.control.closed_loop.loop import run
+    from motok.control.closed_loop.timeline import timeline_rows
     from motok.sim.humanoid import from_mj
-    from motok.control.replan import heading
+    from motok.control.closed_loop.replan import heading
 
     planner, ctrl = steady
     clock = replace_hz(planner.clock, ctrl)
@@ -138,8 +138,8 @@ def test_a_timeline_switches_the_condition_at_its_time(steady, monkeypatch):
     """Two prompts, the second at 0.8 s: the first plan is conditioned on the first text alone, the
     plan made at 0.8 s on the second text's embedding and on the simulated motion's 4 tokens."""
     import motok.gpt.sample as gs
-    from motok.control.closed_loop import run
-    from motok.control.timeline import timeline_rows
+    from motok.control.closed_loop.loop import run
+    from motok.control.closed_loop.timeline import timeline_rows
 
     planner, ctrl = steady
     clock = replace_hz(planner.clock, ctrl)
@@ -239,7 +239,7 @@ def test_closed_loop_options_need_their_partners(tree, tmp_path, args, message):
 def test_the_schedule_and_the_window():
     """Re-plans fall on multiples of --replan-every, on switches and before a plan runs out; a motion
     the GPT holds whole is continued from all of it, a longer one from the last half of the positions."""
-    from motok.control.timeline import Clock, Row, next_replan, plan_window
+    from motok.control.closed_loop.timeline import Clock, Row, next_replan, plan_window
 
     assert plan_window(4, 8, 23) == (4, 4) and plan_window(0, 40, 23) == (0, 23)
     assert plan_window(22, 40, 23) == (11, 12) and plan_window(35, 40, 23) == (11, 5)

@@ -128,8 +128,8 @@ def sample(
                 argmax=argmax, seconds=seconds, render=render, bvh=bvh, tokenizer=tokenizer,
                 allow_mismatch=allow_mismatch, guidance=guidance, snap=snap)
     if closed_loop or then or replan_every is not None or data is not None:
-        from motok.control.closed_loop import REPLAN_EVERY, check_options
-        from motok.control.closed_loop import closed_loop as _closed_loop
+        from motok.control.closed_loop.loop import REPLAN_EVERY, check_options
+        from motok.control.closed_loop.loop import closed_loop as _closed_loop
         run(check_options, texts=texts, then=then, data=data, replan_every=replan_every, closed_loop=closed_loop,
             simulated=prior is not None or expert is not None)
         every = (REPLAN_EVERY if replan_every is None else replan_every) if closed_loop else None

@@ -1,5 +1,5 @@
 """The re-plans of the closed loop: the simulated motion as tokens, the GPT's continuation of them,
-and the new plan placed where the simulated character is (:mod:`motok.control.closed_loop` runs it).
+and the new plan placed where the simulated character is (:mod:`motok.control.closed_loop.loop` runs it).
 
 T2M-GPT is autoregressive over motion tokens (Zhang et al. 2023, Sec. 3.2), so a plan can be
 continued from any tokens; the closed loop continues it from the character's own. At a re-plan:
@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from motok.control.timeline import Clock
+from motok.control.closed_loop.timeline import Clock
 from motok.features.humanml3d import extract_features
 from motok.features.kinematics import forward_direction
 from motok.features.resample import resample_positions
@@ -151,7 +151,7 @@ class Plan:
 
 
 class Loop:
-    """The plans of a batch of motions (:class:`~motok.control.timeline.Row`), made as
+    """The plans of a batch of motions (:class:`~motok.control.closed_loop.timeline.Row`), made as
     :func:`~motok.control.tasks.imitation.play` asks: the first ones by :meth:`start`, the next
     ones by the ``replan`` callback (this object called) whenever a motion's next re-plan falls on
     the control step just played. ``push(steps, env)``, when given, runs after every control step
@@ -185,7 +185,7 @@ class Loop:
         return concat_libraries(self.libs)
 
     def __call__(self, steps: int, env, pos: list, active: np.ndarray):
-        from motok.control.timeline import plan_window
+        from motok.control.closed_loop.timeline import plan_window
         from motok.sim.reference import concat_libraries
 
         self.pos = pos
@@ -224,7 +224,7 @@ class Loop:
                info: dict) -> None:
         """Plan ``joints`` (from ``token``) becomes motion ``i``'s reference: stood on the floor, its
         library built, its next re-plan set, and how it changed the reference measured."""
-        from motok.control.timeline import next_replan
+        from motok.control.closed_loop.timeline import next_replan
         from motok.control.track import place_on_floor
         from motok.sim.reference import library_from_joints
 

@@ -1,4 +1,4 @@
-"""Prompts over time and the re-plan schedule of the closed loop (:mod:`motok.control.closed_loop`).
+"""Prompts over time and the re-plan schedule of the closed loop (:mod:`motok.control.closed_loop.loop`).
 
 Everything here is counted in motion tokens. The tokenizer turns ``rate`` frames at the motion's
 ``fps`` into one token (0.2 s for Bandai-Namco: 4 frames at 20 fps) and the GPT continues a

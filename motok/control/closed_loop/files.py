@@ -1,4 +1,4 @@
-"""What the closed loop writes (:mod:`motok.control.closed_loop`): the simulated motion, the
+"""What the closed loop writes (:mod:`motok.control.closed_loop.loop`): the simulated motion, the
 reference it was given plan after plan, every plan, a video of the first motion with the prompt of
 each moment drawn on it, and the report's numbers per motion and overall.
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from motok.artifacts import Provenance, command_line
-from motok.control.replan import Plan
+from motok.control.closed_loop.replan import Plan
 from motok.control.tasks.imitation import clip_slip, slip_report
 from motok.data.dataset import TRACKED_TO_END, write_motion
 from motok.eval.metrics import mpjpe
@@ -63,7 +63,7 @@ def titles(plans: list[Plan], text_at, spt: int, hz: float, steps: int) -> list[
 
 def write_outputs(out, batches, planner, controller, config: dict, *, render=None, bvh=None) -> dict:
     """Write ``out``, ``OUT.kinematic.h5``, ``OUT.plans.h5``, the video and the BVHs of the run's
-    ``batches`` (:func:`motok.control.closed_loop.run`); returns the report (summary and ``per_clip``)."""
+    ``batches`` (:func:`motok.control.closed_loop.loop.run`); returns the report (summary and ``per_clip``)."""
     from motok.control.text_to_physics import export_bvhs, kinematic_path
 
     clock, cfg = planner.clock, controller.cfg

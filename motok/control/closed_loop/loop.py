@@ -4,10 +4,10 @@ The open loop (:mod:`motok.control.text_to_physics`) samples a whole motion and 
 the character drifts from it, nothing brings the plan back, and a sample the controller cannot
 follow is kept only to its failure. Here the plan is re-made from the simulated character every
 ``--replan-every`` seconds, at every ``--then`` prompt switch, and before a plan runs out
-(:mod:`motok.control.timeline`): the simulated motion of the last window is encoded by the
+(:mod:`motok.control.closed_loop.timeline`): the simulated motion of the last window is encoded by the
 tokenizer and the GPT continues from those tokens, on the prompt of that moment, instead of from
 its own earlier plan; the plan is anchored at the character's root position and heading, and the
-controller goes on tracking from the state the physics reached (:mod:`motok.control.replan`).
+controller goes on tracking from the state the physics reached (:mod:`motok.control.closed_loop.replan`).
 This is CLoSD's closed loop (Tevet et al. 2025: a planner fed back the simulated frames) over a
 discrete-token planner and a distilled latent prior, on a CPU.
 
@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.control.closed_loop_files import REPORT_KIND, plans_path, report_path, write_outputs
-from motok.control.replan import Loop, Planner
-from motok.control.timeline import Clock, Row, parse_then, timeline_rows
+from motok.control.closed_loop.files import REPORT_KIND, plans_path, report_path, write_outputs
+from motok.control.closed_loop.replan import Loop, Planner
+from motok.control.closed_loop.timeline import Clock, Row, parse_then, timeline_rows
 from motok.errors import UserError
 
 REPLAN_EVERY = 1.0  # s, --closed-loop's default: 5 tokens of 0.2 s, CLoSD's order of magnitude
@@ -104,7 +104,7 @@ def load_planner(gpt, texts: list[str], clock: Clock, *, tokenizer=None, allow_m
 def run(planner: Planner, controller, rows: list[Row], every: int | None, *, push=None, keep_qpos: bool = False,
         batch: int = 64) -> list[tuple[Loop, dict, list[int]]]:
     """Generate and simulate ``rows`` in the closed loop, ``batch`` at a time (longest first, so a
-    batch ends together): per batch, its :class:`~motok.control.replan.Loop` (plans, re-plans,
+    batch ends together): per batch, its :class:`~motok.control.closed_loop.replan.Loop` (plans, re-plans,
     simulated positions), :func:`~motok.control.tasks.imitation.play`'s result and the rows' indices.
     ``keep_qpos``: the first row's states and references, for a video. Nothing is written."""
     from motok.control.tasks.imitation import play

@@ -168,26 +168,30 @@ class ReferenceLibrary:
 
 
 def build_library(hum: Humanoid, data_path, control_hz: float | None = None, clips=None) -> ReferenceLibrary:
-    """Build the library for ``clips`` (names or indices; all by default) of a motion artifact."""
+    """Build the library for ``clips`` (names or indices; all by default) of a motion artifact
+    (its path, or an open one: a :class:`MotionFile`, clips in memory)."""
     hz = float(control_hz or hum.control_hz)
-    with MotionFile(data_path) as mf:  # a dataset, decoded tokens, GPT samples: any motion artifact
-        if [n for n in mf.skeleton.joints] != list(hum.skeleton.joints):
-            raise ReferenceError(f"{data_path}: skeleton {mf.skeleton.name!r} does not match the humanoid's "
-                                 f"{hum.skeleton.name!r}; build the humanoid from this dataset")
-        try:
-            idx = list(range(len(mf))) if clips is None else [mf.index(c) for c in clips]
-        except KeyError as e:
-            raise ReferenceError(e.args[0]) from None
-        names, parts = [], {k: [] for k in ReferenceLibrary.ARRAYS}
-        for i in idx:
-            joints = np.asarray(mf.frames("joints", i), dtype=np.float64)
-            qpos = clip_qpos(joints, hum, mf.fps, hz)
-            res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
-            qvel = _qvel(hum.model, qpos, 1.0 / hz)
-            st = body_states(hum, qpos, qvel)
-            for k, v in dict(qpos=qpos, qvel=qvel, joints=to_mj(res), **st).items():
-                parts[k].append(v)
-            names.append(mf.names[i])
+    if not hasattr(data_path, "frames"):
+        with MotionFile(data_path) as mf:  # a dataset, decoded tokens, GPT samples: any motion artifact
+            return build_library(hum, mf, hz, clips)
+    mf = data_path
+    if list(mf.skeleton.joints) != list(hum.skeleton.joints):
+        raise ReferenceError(f"{mf.path}: skeleton {mf.skeleton.name!r} does not match the humanoid's "
+                             f"{hum.skeleton.name!r}; build the humanoid from this dataset")
+    try:
+        idx = list(range(len(mf))) if clips is None else [mf.index(c) for c in clips]
+    except KeyError as e:
+        raise ReferenceError(e.args[0]) from None
+    names, parts = [], {k: [] for k in ReferenceLibrary.ARRAYS}
+    for i in idx:
+        joints = np.asarray(mf.frames("joints", i), dtype=np.float64)
+        qpos = clip_qpos(joints, hum, mf.fps, hz)
+        res = resample_positions(joints, mf.fps, hz) if mf.fps != hz else joints
+        qvel = _qvel(hum.model, qpos, 1.0 / hz)
+        st = body_states(hum, qpos, qvel)
+        for k, v in dict(qpos=qpos, qvel=qvel, joints=to_mj(res), **st).items():
+            parts[k].append(v)
+        names.append(mf.names[i])
     lengths = [len(p) for p in parts["qpos"]]
     return ReferenceLibrary(names=names, fps=hz, starts=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
                             **{k: np.concatenate(v) for k, v in parts.items()})

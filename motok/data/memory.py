@@ -16,6 +16,7 @@ import numpy as np
 
 from motok.artifacts import Provenance
 from motok.data.dataset import Clip, clip_index, write_motion
+from motok.errors import UserError
 from motok.skeleton import Skeleton
 
 
@@ -39,7 +40,7 @@ class MotionClips:
         self._index = {c.name: i for i, c in enumerate(self.clips)}
         if len(self._index) != len(self.clips):
             dup = sorted({c.name for c in self.clips if sum(d.name == c.name for d in self.clips) > 1})
-            raise ValueError(f"{self.path}: clip names must be distinct, {dup} repeat")
+            raise UserError(f"{self.path}: clip names must be distinct, {dup} repeat")
 
     def __enter__(self):
         return self

@@ -191,7 +191,7 @@ def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allo
     return model, meta, tok_model, tok_meta, tok_run, snapping(cache, run, meta, k)
 
 
-@dataclass
+@dataclass(repr=False)
 class Sampler:
     """A GPT run ready to sample: the model, the tokenizer that decodes its codes and the
     caption cache its texts are embedded through (snapping new sentences where the run does)."""
@@ -201,6 +201,10 @@ class Sampler:
     meta: dict
     tokenizer: "Tokenizer"
     cache: object  # TextEmbeddingCache, or the SnappingCache around it
+
+    def __repr__(self) -> str:
+        return (f"Sampler({str(self.run)!r}, text encoder {self.meta['extra']['text_encoder']!r}, "
+                f"tokenizer {str(self.tokenizer.run)!r})")
 
 
 def load_sampler(run: str | Path, tokenizer: str | Path | None = None, allow_mismatch: bool = False,

@@ -29,7 +29,7 @@ from motok.tokenizer.model import VQVAE, TokenizerError, load_tokenizer
 KIND = "tokens"
 
 
-@dataclass
+@dataclass(repr=False)
 class Tokenizer:
     """A trained tokenizer with what its bundle says about the motion it reads and writes: the
     skeleton, rest offsets, frame rate and feature convention of its training data. Encoding and
@@ -38,6 +38,11 @@ class Tokenizer:
     run: Path
     model: VQVAE
     meta: dict
+
+    def __repr__(self) -> str:
+        q = self.model.quantizer
+        return (f"Tokenizer({str(self.run)!r}, {q.num_codebooks} codebook(s) of {q.codebook_size} codes, "
+                f"{self.rate} frames per code, {self.meta['extra']['num_joints']} joints at {self.fps:g} fps)")
 
     @property
     def skeleton(self) -> Skeleton:

@@ -10,7 +10,8 @@ calls the library function its ``motok`` command calls, without the files: ``gen
 
 from __future__ import annotations
 
-__all__ = ["TaskPolicy", "TrackResult", "decode", "encode", "evaluate_task", "generate", "load", "load_controller", "load_gpt", "load_policy", "load_tokenizer", "track"]
+__all__ = ["TaskPolicy", "TrackResult", "decode", "encode", "evaluate_task", "generate", "load", "load_controller",
+           "load_gpt", "load_policy", "load_tokenizer", "track"]
 
 from dataclasses import dataclass
 from pathlib import Path

@@ -87,7 +87,7 @@ def track_clips(controller: Controller, motion, *, clips: str | None = None, spl
     from motok.data.dataset import select_clips
 
     cfg, hum, ac = controller.cfg, controller.humanoid, controller.policy
-    mf = motion
+    mf = motion  # open: a MotionFile or MotionClips
     names = select_clips(mf, clips, split) if clips or split else list(mf.names)
     fps, skeleton, legacy = mf.fps, mf.skeleton, mf.legacy
     offsets = np.asarray(mf.offsets, dtype=np.float64)

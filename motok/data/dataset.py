@@ -197,11 +197,10 @@ def select_clips(data, pattern: str | None, split: str | None = None) -> list[st
         if split not in data.splits:
             raise UserError(f"{data.path} has no split {split!r} (it has {sorted(data.splits)})")
         names = [names[i] for i in data.split_indices(split)]
-    data = data.path
     if not pattern:
         return names
     chosen = [n for n in names if fnmatch.fnmatchcase(n, pattern)]
     if not chosen:
         where = f" in split {split!r}" if split else ""
-        raise UserError(f"no clip of {data}{where} matches {pattern!r} (e.g. {names[:3]})")
+        raise UserError(f"no clip of {data.path}{where} matches {pattern!r} (e.g. {names[:3]})")
     return chosen

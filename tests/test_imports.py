@@ -187,7 +187,7 @@ def test_folder_graph_joins_a_loop_through_two_files_of_one_folder(tmp_path):
 TRAINERS = {"motok.control.rl.runner", "motok.control.priors.distill", "motok.control.priors.dagger"}
 INFERENCE = ("motok.gpt.sample", "motok.tokenizer.tokens", "motok.control.track", "motok.control.text_to_physics",
              "motok.control.priors.load", "motok.control.priors.generate", "motok.control.priors.evaluate",
-             "motok.control.expert.evaluate", "motok.control.highlevel.evaluate")
+             "motok.control.expert.evaluate", "motok.control.highlevel.evaluate", "motok.api.models", "motok.api.motion")
 
 
 def reachable(graph: dict[str, set[str]], start: str) -> set[str]:

@@ -186,18 +186,21 @@ def _str(v) -> str:
 
 
 def select_clips(data, pattern: str | None, split: str | None = None) -> list[str]:
-    """Names of the clips of the motion artifact at ``data`` in ``split`` (train, val, test;
-    all if None) matching the glob ``pattern`` (all if None)."""
-    with MotionFile(data) as mf:
-        names = list(mf.names)
-        if split is not None:
-            if split not in mf.splits:
-                raise UserError(f"{data} has no split {split!r} (it has {sorted(mf.splits)})")
-            names = [names[i] for i in mf.split_indices(split)]
+    """Names of the clips of the motion artifact at ``data`` (or of an open one: a
+    :class:`MotionFile`, clips in memory) in ``split`` (train, val, test; all if None) matching
+    the glob ``pattern`` (all if None)."""
+    if not hasattr(data, "split_indices"):
+        with MotionFile(data) as mf:
+            return select_clips(mf, pattern, split)
+    names = list(data.names)
+    if split is not None:
+        if split not in data.splits:
+            raise UserError(f"{data.path} has no split {split!r} (it has {sorted(data.splits)})")
+        names = [names[i] for i in data.split_indices(split)]
     if not pattern:
         return names
     chosen = [n for n in names if fnmatch.fnmatchcase(n, pattern)]
     if not chosen:
         where = f" in split {split!r}" if split else ""
-        raise UserError(f"no clip of {data}{where} matches {pattern!r} (e.g. {names[:3]})")
+        raise UserError(f"no clip of {data.path}{where} matches {pattern!r} (e.g. {names[:3]})")
     return chosen

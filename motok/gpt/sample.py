@@ -27,8 +27,8 @@ import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 
 from motok import progress as _progress
@@ -36,12 +36,13 @@ from motok.artifacts import Provenance, command_line
 from motok.atomic import check_writable
 from motok.checkpoint import bundle_ref
 from motok.data.dataset import write_motion
-from motok.gpt.model import MotionGPT
 from motok.gpt.data import GPTError
-from motok.gpt.model import load_gpt
-from motok.skeleton import Skeleton
+from motok.gpt.model import MotionGPT, load_gpt
 from motok.text.cache import TextEmbeddingCache
 from motok.text.encoders import get_encoder
+
+if TYPE_CHECKING:
+    from motok.tokenizer.tokens import Tokenizer
 
 
 def filter_logits(logits: torch.Tensor, temperature: float = 1.0, top_k: int | None = None,
@@ -207,40 +208,64 @@ def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allo
     return model, meta, tok_model, tok_meta, tok_run, snapping(cache, run, meta, k)
 
 
-def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: int = 1, seed: int = 0,
-           temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
-           seconds: float | None = None, render: str | Path | None = None, bvh: str | Path | None = None,
-           tokenizer: str | Path | None = None, allow_mismatch: bool = False, batch_size: int = 64,
-           guidance: float | None = None, snap: int | None = None, command: str | None = None) -> dict:
-    """Sample ``num_samples`` motions per text, decode them into one ``motion`` artifact ``out``,
-    and optionally render GIFs/MP4s and BVHs (one per clip, numbered when there are several)."""
-    from motok.render.stick import SUFFIXES
-    from motok.tokenizer.tokens import features_to_clip
+@dataclass(repr=False)
+class Sampler:
+    """A GPT run ready to sample: the model, the tokenizer that decodes its codes and the
+    caption cache its texts are embedded through (snapping new sentences where the run does)."""
 
-    texts = list(texts)
-    opts = dict(num_samples=num_samples, temperature=temperature, top_k=top_k, top_p=top_p, argmax=argmax,
-                seconds=seconds)
-    check_sampling(texts, **opts)
-    check_writable(out)
-    if render is not None:
-        check_writable(render, suffixes=SUFFIXES, what="--render")
-    if bvh is not None:
-        check_writable(bvh, what="--bvh")
-    t0 = time.perf_counter()
+    run: Path
+    model: MotionGPT
+    meta: dict
+    tokenizer: "Tokenizer"
+    cache: object  # TextEmbeddingCache, or the SnappingCache around it
+
+    def __repr__(self) -> str:
+        return (f"Sampler({str(self.run)!r}, text encoder {self.meta['extra']['text_encoder']!r}, "
+                f"tokenizer {str(self.tokenizer.run)!r})")
+
+
+def load_sampler(run: str | Path, tokenizer: str | Path | None = None, allow_mismatch: bool = False,
+                 snap: int | None = None) -> Sampler:
+    """:func:`load_for_sampling`, named by its parts."""
+    from motok.tokenizer.tokens import Tokenizer
+
     model, meta, tok_model, tok_meta, tok_run, cache = load_for_sampling(run, tokenizer, allow_mismatch, snap=snap)
-    ex = meta["extra"]
-    check_sampling(texts, **opts, codebook_size=int(ex["codebook_size"]))
+    return Sampler(Path(run), model, meta, Tokenizer(tok_run, tok_model, tok_meta), cache)
+
+
+@dataclass
+class Samples:
+    """What :func:`sample_clips` made: one decoded clip per (text, sample), in that order, with
+    its codes, and the settings that made them (the provenance of a written file)."""
+
+    clips: list  # motok.data.dataset.Clip, on the tokenizer's skeleton at its frame rate
+    codes: list[torch.Tensor]  # per clip, (L,) code indices without End
+    config: dict  # texts, seeds, filtering, target tokens, guidance, snapped sentences
+    truncated: list[dict]  # texts cut off by the text encoder's window: {"text": 1-based index, "tokens": n}
+    times: dict  # seconds spent embedding texts, generating and decoding
+
+
+def sample_clips(s: Sampler, texts: list[str], *, num_samples: int = 1, seed: int = 0, temperature: float = 1.0,
+                 top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
+                 seconds: float | None = None, guidance: float | None = None, batch_size: int = 64) -> Samples:
+    """Sample ``num_samples`` motions per text in memory (sample ``j`` seeded ``seed + j``) and
+    decode them with the tokenizer; the work of ``motok gpt sample`` without its files."""
+    model, ex, tok = s.model, s.meta["extra"], s.tokenizer
+    texts = list(texts)
+    check_sampling(texts, num_samples=num_samples, temperature=temperature, top_k=top_k, top_p=top_p, argmax=argmax,
+                   seconds=seconds, codebook_size=int(ex["codebook_size"]))
     guidance = float(model.default_guidance if guidance is None else guidance)
     check_guidance(model, guidance)
-    emb = torch.from_numpy(cache.embed(texts, ex["text_encoder"], write=False))
-    truncated = [{"text": i + 1, "tokens": cache.truncated[t]} for i, t in enumerate(texts) if t in cache.truncated]
+    t0 = time.perf_counter()
+    emb = torch.from_numpy(s.cache.embed(texts, ex["text_encoder"], write=False))
+    truncated = [{"text": i + 1, "tokens": s.cache.truncated[t]} for i, t in enumerate(texts) if t in s.cache.truncated]
     for tr in truncated:  # printed even with --quiet: the motion answers another text than the one given
         _progress.console.print(f"[yellow]warning:[/] text {tr['text']} is {tr['tokens']} tokens long; the "
                        f"{ex['text_encoder']} text encoder reads only the first "
                        f"{get_encoder(ex['text_encoder']).window}, the rest was cut off")
     t_text = time.perf_counter()
 
-    rate, fps = int(ex["rate"]), float(tok_meta["extra"]["fps"])
+    rate, fps = int(ex["rate"]), tok.fps
     target = None
     if seconds is not None:
         want = max(1, round(seconds * fps / rate))
@@ -258,26 +283,52 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
         codes += g.codes
     t_gen = time.perf_counter()
 
-    tex = tok_meta["extra"]
-    skeleton = Skeleton.from_dict(tex["skeleton"], source=f"{tok_run}/bundle.json")
-    offsets = np.asarray(tex["offsets"], dtype=np.float32)
-    names = [sample_name(i, texts[i], j) for i, j in rows]
-    clips = []
-    for (i, j), name, c in zip(rows, names, codes):
-        idx = c.view(1, -1, 1)
-        feats = tok_model.decode_features(idx, 1)[0].numpy()
-        clips.append(features_to_clip(name, feats, skeleton, bool(tex["legacy"]), split="none",
-                                      labels={"text": texts[i], "sample": j, "seed": seed + j,
-                                              "codes": c.tolist()},
-                                      captions=[(texts[i], "", 0.0, 0.0)]))
-    cfg = {"gpt": str(run), "tokenizer": str(tok_run), "texts": list(texts), "num_samples": num_samples,
-           "seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p, "argmax": argmax,
-           "seconds": seconds, "target_tokens": target, "codebooks_decoded": 1, "guidance": guidance,
-           "snapped": {t: c[0] for t, c in getattr(cache, "snapped", {}).items()}}
+    skeleton = tok.skeleton
+    clips = [tok.decode(sample_name(i, texts[i], j), c, 1, skeleton, split="none",
+                        labels={"text": texts[i], "sample": j, "seed": seed + j, "codes": c.tolist()},
+                        captions=[(texts[i], "", 0.0, 0.0)])
+             for (i, j), c in zip(rows, codes)]
+    snapped = getattr(s.cache, "snapped", {})
+    cfg = {"texts": list(texts), "num_samples": num_samples, "seed": seed, "temperature": temperature,
+           "top_k": top_k, "top_p": top_p, "argmax": argmax, "seconds": seconds, "target_tokens": target,
+           "codebooks_decoded": 1, "guidance": guidance,
+           "snapped": {t: c[0] for t, c in snapped.items() if t in texts}}
+    times = {"text_s": t_text - t0, "generate_s": t_gen - t_text, "decode_s": time.perf_counter() - t_gen}
+    return Samples(clips, codes, cfg, truncated, times)
+
+
+def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: int = 1, seed: int = 0,
+           temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
+           seconds: float | None = None, render: str | Path | None = None, bvh: str | Path | None = None,
+           tokenizer: str | Path | None = None, allow_mismatch: bool = False, batch_size: int = 64,
+           guidance: float | None = None, snap: int | None = None, command: str | None = None) -> dict:
+    """Sample ``num_samples`` motions per text (:func:`sample_clips`), write them as one
+    ``motion`` artifact ``out``, and optionally render GIFs/MP4s and BVHs (one per clip, numbered
+    when there are several)."""
+    from motok.render.stick import SUFFIXES
+
+    texts = list(texts)
+    opts = dict(num_samples=num_samples, temperature=temperature, top_k=top_k, top_p=top_p, argmax=argmax,
+                seconds=seconds)
+    check_sampling(texts, **opts)
+    check_writable(out)
+    if render is not None:
+        check_writable(render, suffixes=SUFFIXES, what="--render")
+    if bvh is not None:
+        check_writable(bvh, what="--bvh")
+    t0 = time.perf_counter()
+    s = load_sampler(run, tokenizer, allow_mismatch, snap=snap)
+    t_load = time.perf_counter()
+    made = sample_clips(s, texts, **opts, seed=seed, guidance=guidance, batch_size=batch_size)
+    tok, clips, codes = s.tokenizer, made.clips, made.codes
+    t_dec0 = time.perf_counter()
+    skeleton, offsets, fps = tok.skeleton, tok.offsets, tok.fps
+    names = [c.name for c in clips]
+    cfg = {"gpt": str(run), "tokenizer": str(tok.run), **made.config}
     prov = Provenance(command=command or command_line(), config=cfg,
-                      inputs={str(Path(run) / "model.safetensors"): meta["model_sha256"],
-                              str(tok_run / "model.safetensors"): tok_meta["model_sha256"]})
-    write_motion(out, "motion", prov, clips, skeleton, offsets, fps, bool(tex["legacy"]))
+                      inputs={str(Path(run) / "model.safetensors"): s.meta["model_sha256"],
+                              str(tok.run / "model.safetensors"): tok.meta["model_sha256"]})
+    write_motion(out, "motion", prov, clips, skeleton, offsets, fps, tok.legacy)
     t_dec = time.perf_counter()
 
     renders, bvhs = [], []
@@ -289,8 +340,10 @@ def sample(run: str | Path, texts: list[str], out: str | Path, *, num_samples: i
         from motok.data.export import export_bvh
         for k, c in enumerate(clips):
             bvhs.append(str(export_bvh(_numbered(Path(bvh), names, k), c.joints, skeleton, offsets, fps)))
-    return {"output": str(out), "clips": len(clips), "names": names, "truncated": truncated,
+    rate = int(s.meta["extra"]["rate"])
+    return {"output": str(out), "clips": len(clips), "names": names, "truncated": made.truncated,
             "tokens": [len(c) for c in codes], "seconds": [round(len(c) * rate / fps, 2) for c in codes],
-            "render": renders, "bvh": bvhs, "time_load_s": round(t_text - t0, 2),
-            "time_generate_s": round(t_gen - t_text, 3), "time_decode_write_s": round(t_dec - t_gen, 3),
+            "render": renders, "bvh": bvhs, "time_load_s": round(t_load - t0 + made.times["text_s"], 2),
+            "time_generate_s": round(made.times["generate_s"], 3),
+            "time_decode_write_s": round(made.times["decode_s"] + t_dec - t_dec0, 3),
             "time_total_s": round(time.perf_counter() - t0, 2)}

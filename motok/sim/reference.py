@@ -168,18 +168,21 @@ class ReferenceLibrary:
 
 
 def build_library(hum: Humanoid, data_path, control_hz: float | None = None, clips=None) -> ReferenceLibrary:
-    """Build the library for ``clips`` (names or indices; all by default) of a motion artifact."""
+    """Build the library for ``clips`` (names or indices; all by default) of a motion artifact
+    (its path, or an open one: a :class:`MotionFile`, clips in memory)."""
     hz = float(control_hz or hum.control_hz)
-    with MotionFile(data_path) as mf:  # a dataset, decoded tokens, GPT samples: any motion artifact
-        if [n for n in mf.skeleton.joints] != list(hum.skeleton.joints):
-            raise ReferenceError(f"{data_path}: skeleton {mf.skeleton.name!r} does not match the humanoid's "
-                                 f"{hum.skeleton.name!r}; build the humanoid from this dataset")
-        try:
-            idx = list(range(len(mf))) if clips is None else [mf.index(c) for c in clips]
-        except KeyError as e:
-            raise ReferenceError(e.args[0]) from None
-        return library_from_joints(hum, [mf.names[i] for i in idx], (mf.frames("joints", i) for i in idx),
-                                   mf.fps, hz)
+    if not hasattr(data_path, "frames"):
+        with MotionFile(data_path) as mf:  # a dataset, decoded tokens, GPT samples: any motion artifact
+            return build_library(hum, mf, hz, clips)
+    mf = data_path
+    if list(mf.skeleton.joints) != list(hum.skeleton.joints):
+        raise ReferenceError(f"{mf.path}: skeleton {mf.skeleton.name!r} does not match the humanoid's "
+                             f"{hum.skeleton.name!r}; build the humanoid from this dataset")
+    try:
+        idx = list(range(len(mf))) if clips is None else [mf.index(c) for c in clips]
+    except KeyError as e:
+        raise ReferenceError(e.args[0]) from None
+    return library_from_joints(hum, [mf.names[i] for i in idx], (mf.frames("joints", i) for i in idx), mf.fps, hz)
 
 
 def library_from_joints(hum: Humanoid, names: list[str], joints, fps: float, control_hz: float) -> ReferenceLibrary:

@@ -10,6 +10,7 @@ keeps ``T``. Layout in docs/tokenizer.md.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +24,65 @@ from motok.data.dataset import Clip, MotionFile, write_motion
 from motok.features.humanml3d import recover_from_ric, recover_local_quats
 from motok.features.kinematics import acceleration_error, mpjpe
 from motok.skeleton import Skeleton
-from motok.tokenizer.model import TokenizerError, load_tokenizer
+from motok.tokenizer.model import VQVAE, TokenizerError, load_tokenizer
 
 KIND = "tokens"
+
+
+@dataclass(repr=False)
+class Tokenizer:
+    """A trained tokenizer with what its bundle says about the motion it reads and writes: the
+    skeleton, rest offsets, frame rate and feature convention of its training data. Encoding and
+    decoding here are the ones ``tokenize encode``, ``tokenize decode`` and ``gpt sample`` run."""
+
+    run: Path
+    model: VQVAE
+    meta: dict
+
+    def __repr__(self) -> str:
+        q = self.model.quantizer
+        return (f"Tokenizer({str(self.run)!r}, {q.num_codebooks} codebook(s) of {q.codebook_size} codes, "
+                f"{self.rate} frames per code, {self.meta['extra']['num_joints']} joints at {self.fps:g} fps)")
+
+    @property
+    def skeleton(self) -> Skeleton:
+        return Skeleton.from_dict(self.meta["extra"]["skeleton"], source=f"{self.run}/bundle.json")
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return np.asarray(self.meta["extra"]["offsets"], dtype=np.float32)
+
+    @property
+    def fps(self) -> float:
+        return float(self.meta["extra"]["fps"])
+
+    @property
+    def legacy(self) -> bool:
+        return bool(self.meta["extra"]["legacy"])
+
+    @property
+    def rate(self) -> int:
+        """Frames per token."""
+        return self.model.rate
+
+    def encode(self, features: np.ndarray, num_codebooks: int) -> np.ndarray:
+        """Raw features ``(T, D)`` -> codes ``(T // rate, num_codebooks)`` int32 (the trailing
+        ``T mod rate`` frames dropped)."""
+        idx = self.model.encode_features(torch.from_numpy(np.asarray(features))[None], num_codebooks)
+        return idx[0, :, :num_codebooks].numpy().astype(np.int32)
+
+    def decode(self, name: str, codes, num_codebooks: int, skeleton: Skeleton | None = None, **clip_fields) -> Clip:
+        """Codes ``(L, N)`` (their first ``num_codebooks`` columns) -> a clip of ``L * rate``
+        frames on the tokenizer's skeleton; ``clip_fields``: the clip's split, labels, captions."""
+        idx = torch.as_tensor(np.asarray(codes), dtype=torch.int64).reshape(1, len(codes), -1)[:, :, :num_codebooks]
+        feats = self.model.decode_features(idx, num_codebooks)[0].numpy()
+        return features_to_clip(name, feats, skeleton or self.skeleton, self.legacy, **clip_fields)
+
+
+def open_tokenizer(run: str | Path) -> Tokenizer:
+    """The tokenizer run at ``run``, loaded for encoding and decoding (weights checked)."""
+    model, meta = load_tokenizer(run)
+    return Tokenizer(Path(run), model, meta)
 
 
 def _tokenizer_id(run: Path, meta: dict, out: Path) -> dict:
@@ -34,7 +91,8 @@ def _tokenizer_id(run: Path, meta: dict, out: Path) -> dict:
             "tokenizer_config": json.dumps(meta["config"], sort_keys=True)}
 
 
-def _check_codebooks(model, num_codebooks: int | None) -> int:
+def check_codebooks(model, num_codebooks: int | None) -> int:
+    """The number of codebooks to use: ``num_codebooks`` (1 to the tokenizer's), else all of them."""
     n = model.num_codebooks
     if num_codebooks is not None and not 1 <= num_codebooks <= n:
         raise TokenizerError(f"--codebooks {num_codebooks}: the tokenizer has {n} codebook(s)")
@@ -42,9 +100,13 @@ def _check_codebooks(model, num_codebooks: int | None) -> int:
 
 
 def _check_data(mf: MotionFile, meta: dict) -> None:
-    fd = int(mf.h5["frames/features"].shape[1])
+    check_feature_dim(int(mf.h5["frames/features"].shape[1]), meta, mf.path)
+
+
+def check_feature_dim(fd: int, meta: dict, where) -> None:
+    """Refuse features of another width than the tokenizer's (another skeleton's)."""
     if fd != int(meta["extra"]["feature_dim"]):
-        raise ArtifactError(f"{mf.path}: features have {fd} dims, the tokenizer expects {meta['extra']['feature_dim']} "
+        raise ArtifactError(f"{where}: features have {fd} dims, the tokenizer expects {meta['extra']['feature_dim']} "
                             f"(trained on a {meta['extra']['num_joints']}-joint skeleton)")
 
 
@@ -54,8 +116,9 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
            split: str | None = None, command: str | None = None) -> dict:
     """Every clip (or one split) of a motion(-dataset) artifact -> a ``tokens`` artifact."""
     run, data = Path(run), Path(data)
-    model, meta = load_tokenizer(run)
-    m = _check_codebooks(model, num_codebooks)
+    tok = open_tokenizer(run)
+    model, meta = tok.model, tok.meta
+    m = check_codebooks(model, num_codebooks)
     rate = model.rate
     kept, indices, skipped = [], [], []
     with MotionFile(data) as mf:
@@ -69,9 +132,8 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
                 if len(feats) < rate:
                     skipped.append({"input": mf.names[i], "error": f"{len(feats)} frames < one token ({rate})"})
                     continue
-                idx = model.encode_features(torch.from_numpy(np.asarray(feats))[None], m)[0, :, :m]
                 kept.append((i, len(feats)))
-                indices.append(idx.numpy().astype(np.int32))
+                indices.append(tok.encode(feats, m))
                 bar.advance(task, len(feats))
         if not kept:
             raise ArtifactError(f"{data}: no clip has at least {rate} frames to encode")
@@ -171,28 +233,24 @@ def decode(run: str | Path, tokens: str | Path, out: str | Path, num_codebooks: 
            allow_mismatch: bool = False, command: str | None = None) -> dict:
     """A ``tokens`` artifact -> a ``motion`` artifact that ``motok render``/``export bvh`` accept."""
     run = Path(run)
-    model, meta = load_tokenizer(run)
-    ex = meta["extra"]
+    tok = open_tokenizer(run)
+    model, meta = tok.model, tok.meta
     with TokenFile(tokens) as tf:
         if tf.tokenizer_sha256 != meta["model_sha256"] and not allow_mismatch:
             raise ArtifactError(f"{tokens} was encoded by another tokenizer ({tf.provenance.config.get('tokenizer')}, "
                                 f"sha256 {tf.tokenizer_sha256[:12]}) than {run} ({meta['model_sha256'][:12]})")
-        m = _check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks))
-        skeleton = Skeleton.from_dict(ex["skeleton"], source=f"{run}/bundle.json")
+        m = check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks))
+        skeleton = tok.skeleton
         clips = []
         with _progress.make_progress("clips") as bar:
             task = bar.add_task("decode", total=len(tf))
             for i, name in enumerate(tf.names):
-                idx = torch.from_numpy(tf.indices(i).astype(np.int64))[None, :, :m]
-                feats = model.decode_features(idx, m)[0].numpy()
-                clips.append(features_to_clip(name, feats, skeleton, bool(ex["legacy"]), split=tf.splits[i],
-                                              captions=tf.captions(i)))
+                clips.append(tok.decode(name, tf.indices(i), m, skeleton, split=tf.splits[i], captions=tf.captions(i)))
                 bar.advance(task)
         prov = Provenance(command=command or command_line(),
                           config={"tokenizer": str(run), "tokens": str(tokens), "num_codebooks": m},
                           inputs={**hash_inputs([tokens]), f"{run}#weights": meta["model_sha256"]})
-        write_motion(out, "motion", prov, clips, skeleton, np.asarray(ex["offsets"], dtype=np.float32),
-                     float(ex["fps"]), bool(ex["legacy"]))
+        write_motion(out, "motion", prov, clips, skeleton, tok.offsets, tok.fps, tok.legacy)
     return {"output": str(out), "clips": len(clips), "frames": int(sum(c.num_frames for c in clips)),
             "num_codebooks": m}
 
@@ -226,7 +284,7 @@ def evaluate(run: str | Path, data: str | Path, split: str = "test", num_codeboo
     """Reconstruct every clip of ``split`` through the tokens and measure it against the source."""
     run = Path(run)
     model, meta = load_tokenizer(run)
-    m = _check_codebooks(model, num_codebooks)
+    m = check_codebooks(model, num_codebooks)
     K = int(model.quantizer.codebook_size)
     counts = np.zeros((m, K), dtype=np.int64)
     sums = {"mpjpe": 0.0, "mpjpe_global": 0.0, "accel": 0.0, "feature_l1": 0.0}

@@ -83,7 +83,25 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
     ``split``), written to ``RUN/eval_TASK[_SPLIT].json`` with the checkpoint and provenance.
     ``task``, when given, must be the run's (checked before any work)."""
     run = Path(run)
-    cfg, hum, ac, model, scale, meta = load_task_run(run)
+    res, src = evaluate_loaded(run, load_task_run(run), episodes=episodes, seed=seed, data=data, clips=clips,
+                               split=split, render=render, device=device, task=task)
+    prov = Provenance(command=command_line(), config={"run": str(run), "episodes": episodes, "seed": seed,
+                                                        "clips": clips, "split": split},
+                      inputs=hash_inputs([src]))
+    res["provenance"] = json.loads(prov.to_json())
+    path = run / (f"eval_{res['task']}" + (f"_{split}" if split else "") + ".json")
+    write_json(path, res)
+    res["written"] = str(path)
+    return res
+
+
+def evaluate_loaded(run, loaded: tuple, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
+                    split: str | None = None, render=None, device: str | None = None,
+                    task: str | None = None) -> tuple[dict, Path | str]:
+    """The evaluation of :func:`evaluate_run` on a task run already loaded (``loaded``: what
+    :func:`~motok.control.highlevel.policy.load_task_run` returns for ``run``), in memory: the
+    report (without provenance) and the dataset its start states came from."""
+    cfg, hum, ac, model, scale, meta = loaded
     if task is not None and task != cfg.task:
         raise UserError(f"{run} is a {cfg.task!r} policy, not {task!r}")
     cfg.env.on(device)
@@ -94,11 +112,4 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
     res = {"kind": "control-task-eval", "schema_version": 1, "task": cfg.task, "episodes": episodes, **res,
            "checkpoint": {**runs.checkpoint_info(meta), "prior": meta["extra"]["prior_info"],
                           "high_level_action": meta["extra"]["high_level_action"]}}
-    prov = Provenance(command=command_line(), config={"run": str(run), "episodes": episodes, "seed": seed,
-                                                        "clips": clips, "split": split},
-                      inputs=hash_inputs([src]))
-    res["provenance"] = json.loads(prov.to_json())
-    path = run / (f"eval_{cfg.task}" + (f"_{split}" if split else "") + ".json")
-    write_json(path, res)
-    res["written"] = str(path)
-    return res
+    return res, src

@@ -19,7 +19,7 @@ from motok.errors import UserError
 from motok.sim.humanoid import Humanoid
 
 
-@dataclass
+@dataclass(repr=False)
 class Controller:
     """A trained policy ready to drive the humanoid."""
 
@@ -28,6 +28,11 @@ class Controller:
     policy: object  # act(x_raw, deterministic) -> (xn, a, logp, v), as an actor-critic
     meta: dict  # the bundle's metadata (kind, weights hash, extra)
     prior: LatentPrior | None = None  # the distilled prior the policy decodes with (None for an expert)
+
+    def __repr__(self) -> str:  # the fields hold whole networks and recipes
+        what = f"a {self.prior.kind} prior" if self.prior is not None else "an expert"
+        return (f"Controller({what}, {self.humanoid.skeleton.num_joints} joints, "
+                f"iteration {self.meta.get('extra', {}).get('iteration')})")
 
 
 class StudentPolicy:

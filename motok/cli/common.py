@@ -44,6 +44,11 @@ def run(fn: Callable, *args, **kwargs):
         return fn(*args, **kwargs)
     except MotokError as e:
         fail(str(e))
+    except Exception as e:  # a full disk is the user's to fix: one line, not a traceback
+        from motok.cli.outputs import disk_full_message
+        if (msg := disk_full_message(e)) is not None:
+            fail(msg)
+        raise
 
 
 def existing(ctx: typer.Context, param, value):
@@ -143,6 +148,9 @@ def _writable(folder: bool, suffixes: tuple[str, ...]):
                 check_writable(v, folder=folder, suffixes=suffixes, what=label)
             except OutputError as e:
                 fail(str(e))
+            if not folder:  # a foreign file is never replaced; one writer per file (motok.cli.outputs)
+                from motok.cli.outputs import claim_output_file
+                claim_output_file(ctx, v, label)
         return value
     return check
 

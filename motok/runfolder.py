@@ -57,7 +57,10 @@ def check_run_target(out: str | os.PathLike, *, resume: bool, force: bool) -> st
     if resume and force:
         raise RunFolderError("--resume continues the run in -o and --force replaces it: give one of them")
     if resume:
-        return "resume"  # the trainer loads the bundle and says what is missing
+        if not out.is_dir():
+            raise RunFolderError(f"--resume: there is no run at {out} (no such folder, so no checkpoint bundle "
+                                 f"to continue); leave out --resume to start one there")
+        return "resume"  # the trainer loads the bundle and says what else is missing
     if out.exists() and not out.is_dir():
         raise RunFolderError(f"-o {out} is a file, not a run folder; motok never replaces a file it did not write")
     if not out.exists() or not any(out.iterdir()):
@@ -95,6 +98,8 @@ class RunClaim:
         self.aside: Path | None = None
 
     def __enter__(self) -> Path:
+        if self.resume:  # before the lock, which would create the folders above a mistyped path
+            check_run_target(self.out, resume=True, force=False)
         # The lock first: a run being written is better told by who writes it than by what is there.
         self.lock.acquire()
         try:
@@ -109,7 +114,10 @@ class RunClaim:
             if self.mode == "replace":
                 info(f"--force: {self.out} is moved aside when the new run saves its first checkpoint")
             return self.tmp
-        except BaseException:
+        except BaseException:  # Ctrl-C included: __exit__ will not run, so undo here
+            if self.tmp is not None:
+                _STAGED.pop(os.path.abspath(self.tmp), None)
+                shutil.rmtree(self.tmp, ignore_errors=True)
             self.lock.release()
             raise
 

@@ -176,7 +176,7 @@ def test_ctrl_c_before_the_first_checkpoint_leaves_no_folder(small_dataset, tmp_
     p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", *args], cwd=REPO, env=env,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
-    while not any(tmp_path.glob(".run.*.part")) and time.time() < deadline:  # training has begun
+    while not any(tmp_path.glob(".run.*.part")) and p.poll() is None and time.time() < deadline:  # claimed
         time.sleep(0.02)
     time.sleep(0.5)
     p.send_signal(signal.SIGINT)
@@ -219,3 +219,23 @@ def test_a_full_disk_while_writing_a_file_is_one_line_and_leaves_no_partial_file
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "no space left on device" in lines[0] and str(out) in lines[0], r.stderr
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
+
+
+def test_a_writer_killed_outright_leaves_only_what_the_next_writer_removes(tmp_path):
+    from motok.atomic import _HOST
+    from motok.runfolder import RunClaim, publish_staged
+
+    run = tmp_path / "tok"
+    dead = 2 ** 22 + 12345  # above the kernel's default pid_max: no such process
+    (tmp_path / f".tok.{_HOST}.{dead}.0badc0de.part").mkdir()  # killed before its first checkpoint
+    (tmp_path / f".tok.{_HOST}.{dead}.deadbeef.part").symlink_to("tok")  # killed after it
+    with RunClaim(run) as where:
+        assert where.parent == tmp_path and where.name.startswith(".tok.") and not run.exists()
+        (where / "metrics.jsonl").write_text("")
+        (where / "bundle.json").write_text("{}")
+        publish_staged(where)  # what save_bundle does after each checkpoint
+        assert run.is_dir() and (where / "metrics.jsonl").exists()  # still writable through the old name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tok"]
+    with pytest.raises(Exception, match="there is no run at"):
+        RunClaim(tmp_path / "missing" / "run", resume=True).__enter__()
+    assert not (tmp_path / "missing").exists()

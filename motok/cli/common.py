@@ -45,7 +45,7 @@ def run(fn: Callable, *args, **kwargs):
     except MotokError as e:
         fail(str(e))
     except Exception as e:  # a full disk is the user's to fix: one line, not a traceback
-        from motok.cli.outputs import disk_full_message
+        from motok.cli.output_files import disk_full_message
         if (msg := disk_full_message(e)) is not None:
             fail(msg)
         raise
@@ -148,9 +148,9 @@ def _writable(folder: bool, suffixes: tuple[str, ...]):
                 check_writable(v, folder=folder, suffixes=suffixes, what=label)
             except OutputError as e:
                 fail(str(e))
-            if not folder:  # a foreign file is never replaced; one writer per file (motok.cli.outputs)
-                from motok.cli.outputs import claim_output_file
-                claim_output_file(ctx, v, label)
+            if not folder:  # a foreign file is never replaced; one writer per file
+                from motok.cli.output_files import claim_output_file
+                run(claim_output_file, ctx, v, label)
         return value
     return check
 

@@ -1,9 +1,12 @@
-"""What the commands that write do before, while and after they write: claim the output (refuse
-to replace a run without ``--force`` or a file motok did not make, take the writer's lock), and
-turn an interruption or a full disk into one line that says what was kept and how to go on.
+"""What the commands that train into a run folder do before, while and after they write: claim
+the folder (refuse to replace a run without ``--force``, or a folder motok did not make; take the
+writer's lock), and turn an interruption or a full disk into one line that says what was kept
+and how to go on.
 
 The rules live in :mod:`motok.runfolder` and :mod:`motok.runlock`; this module is their command
-line. Importing it stays cheap (no torch): the checks run before any work.
+line for run folders, :mod:`motok.cli.output_files` for output files (which
+:mod:`motok.cli.common` uses, so that one must not import this). Importing it stays cheap (no
+torch): the checks run before any work.
 """
 
 from __future__ import annotations
@@ -23,7 +26,6 @@ Force = typer.Option(False, "--force", help="Replace the run in -o: the old run 
                      "-o.replaced-TIME (not deleted) when the new one saves its first checkpoint. A folder "
                      "that is not a motok run is never replaced.")
 
-H5_SUFFIXES = (".h5", ".hdf5")
 INTERRUPTED = 130  # the shell's code for a process ended by SIGINT
 
 
@@ -35,65 +37,6 @@ def _say(msg: str) -> None:
 def _fail(msg: str, code: int = 2):
     from motok.cli.common import fail
     fail(msg, code)
-
-
-# --------------------------------------------------------------------------- output files
-
-def foreign_file(path: Path) -> str | None:
-    """Why the existing file ``path`` must not be replaced, or None: an HDF5 output must be a
-    motok artifact (its root ``kind``). Other outputs (videos, images, BVH, JSON reports) carry
-    no mark of who wrote them and are replaced, atomically, as before."""
-    if not path.is_file() or path.suffix.lower() not in H5_SUFFIXES:
-        return None
-    from motok.artifacts import KINDS
-    try:
-        import h5py
-        with h5py.File(path, "r") as f:
-            kind = f.attrs.get("kind")
-    except OSError:
-        kind = None
-    kind = kind.decode() if isinstance(kind, bytes) else kind
-    if kind in KINDS:
-        return None
-    return (f"{path} exists and is not a motok artifact; motok never replaces a file it did not write "
-            f"(not even with --force): move it or choose another output")
-
-
-def claim_output_file(ctx: typer.Context, path, label: str) -> None:
-    """Refuse a foreign file at ``path`` and hold the writer's lock beside it until the command ends."""
-    from motok.runlock import OutputLock
-    path = Path(path)
-    why = foreign_file(path)
-    if why:
-        _fail(f"{label} {why}")
-    try:
-        lock = OutputLock(path, f"{label} output").acquire()
-    except MotokError as e:
-        _fail(str(e))
-    except OSError:
-        return  # no lock where the folder cannot hold one (the writer's own check reports why)
-    _claimed.append(path)
-
-    def release():
-        lock.release()
-        _claimed.remove(path)
-    ctx.call_on_close(release)
-
-
-_claimed: list[Path] = []  # the output files of the running command, to name in a fault
-
-
-def disk_full_message(e: BaseException) -> str | None:
-    """One line for a full disk met while writing an output file (which atomic writing removed),
-    or None when ``e`` is something else."""
-    from motok.runfolder import disk_full, disk_full_path
-    if not disk_full(e):
-        return None
-    named = ", ".join(map(str, _claimed)) or "the output"
-    path = disk_full_path(e, named)
-    if Path(path).name.startswith("."):  # a temporary name: say which output it was to become
-        path = named
-    return f"no space left on device writing {path}; nothing was written: free some space and run it again"
 
 
 # --------------------------------------------------------------------------- run folders

@@ -38,7 +38,10 @@ def _watch(parent: int) -> None:
 
 
 def die_with_parent(parent: int) -> None:
-    """Pool initializer: end this worker when the process ``parent`` ends."""
+    """Pool initializer: end this worker when the process ``parent`` ends, and leave Ctrl-C (which
+    the terminal sends to the whole process group) to the parent, which stops the pool and says
+    so in one line, instead of every worker printing a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if not _ask_kernel():
         threading.Thread(target=_watch, args=(parent,), daemon=True, name="motok-parent-watch").start()
     # The parent may have died between the fork and the request above: then nobody will signal us.

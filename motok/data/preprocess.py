@@ -41,8 +41,8 @@ from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
-from motok.workers import die_with_parent
 from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
+from motok.workers import die_with_parent
 
 
 @dataclass

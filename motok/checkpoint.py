@@ -41,6 +41,8 @@ from motok.atomic import atomic_paths, strict_json
 from motok.errors import MissingFileError, MotokError
 from motok.machine import arithmetic_differences
 from motok.progress import info
+from motok.runfolder import publish_staged
+from motok.safeload import state_refusal, write_state
 
 BUNDLE_KINDS: dict[str, tuple[int, ...]] = {}  # kind -> supported versions; stages register theirs
 
@@ -104,8 +106,9 @@ def save_bundle(run: str | Path, kind: str, model_state: dict[str, torch.Tensor]
     with atomic_paths(*(run / f for f in files)) as tmps:
         save_file(tensors, str(tmps[0]))
         if train_state is not None:
-            torch.save(train_state, tmps[1])
+            write_state(train_state, tmps[1], run / "train_state.pt")  # a full disk as OSError (motok.safeload)
         tmps[-1].write_text(strict_json(meta) + "\n", encoding="utf-8")
+    publish_staged(run)  # a new run folder appears at its first complete checkpoint (motok.runfolder)
     return run
 
 
@@ -175,11 +178,12 @@ def load_bundle(run: str | Path, kind: str | None = None, with_train_state: bool
         p = run / "train_state.pt"
         if not p.exists():
             raise CheckpointError(f"{run}: no train_state.pt to resume from")
+        if (refused := state_refusal(p)) is not None:  # a pickle is never opened (motok.safeload)
+            raise CheckpointError(refused)
         try:
             train_state = torch.load(p, weights_only=True, map_location="cpu")  # a GPU run resumes or loads anywhere
-        except Exception as e:  # pickle, zip and torch errors alike mean a damaged file here
-            raise CheckpointError(f"{p}: unreadable training state, the file is truncated or corrupted "
-                                  f"({type(e).__name__}: {e})") from None
+        except Exception as e:  # pickle, zip and torch errors: say which
+            raise CheckpointError(state_refusal(p, e)) from None
         changed = arithmetic_differences((meta.get("provenance") or {}).get("machine"))
         if changed:  # resuming is still right; only repeating the run to the digit is off
             info(f"[bold yellow]warning:[/] {run}: resuming on other arithmetic than the checkpoint was made "

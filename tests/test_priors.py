@@ -310,8 +310,9 @@ def test_control_distill_command(small_dataset, tiny_expert, tmp_path, monkeypat
     assert meta["extra"]["iteration"] == 1 and meta["config"]["iterations"] == 3 and (out / "humanoid.xml").exists()
     for args, says in ((["--kind", "vq-vae"], "--kind must be one of"),
                        (["--kind", "discrete"], "the recipe is for a 'hybrid' prior")):
-        r = CliRunner().invoke(app, [*base, *args])
+        r = CliRunner().invoke(app, [*base[:-1], str(tmp_path / "other"), *args])  # -o: a new folder
         assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, r.output
+        assert not (tmp_path / "other").exists()
     # the distilled policy on the imitation task, with the first codebook only
     ev = ["--quiet", "control", "eval", "--task", "imitation", "--prior", str(out), "--data", str(small_dataset),
           "--clips", "dataset-2_walk_normal_00[12]"]

@@ -101,7 +101,7 @@ def test_missing_mpnet_wheels_are_a_clear_error(monkeypatch, tmp_path):
     import motok.text.encoders as enc
 
     monkeypatch.setattr(enc, "MPNET_PARTS", ["no-such-package-part-001"])
-    with pytest.raises(TextEncoderError, match="pip install no-such-package-part-001"):
+    with pytest.raises(TextEncoderError, match="no-such-package-part-001 is missing"):
         enc.unpack_mpnet(tmp_path / "mpnet")
 
 

@@ -44,6 +44,13 @@ def run(fn: Callable, *args, **kwargs):
         return fn(*args, **kwargs)
     except MotokError as e:
         fail(str(e))
+    except KeyboardInterrupt:  # Ctrl-C: a line, not a traceback (training commands say more: cli/outputs.py)
+        fail("interrupted; every file motok writes appears only when complete, so none is half-written", 130)
+    except Exception as e:  # a full disk is the user's to fix: one line, not a traceback
+        from motok.cli.output_files import disk_full_message
+        if (msg := disk_full_message(e)) is not None:
+            fail(msg)
+        raise
 
 
 def existing(ctx: typer.Context, param, value):
@@ -143,6 +150,9 @@ def _writable(folder: bool, suffixes: tuple[str, ...]):
                 check_writable(v, folder=folder, suffixes=suffixes, what=label)
             except OutputError as e:
                 fail(str(e))
+            if not folder:  # a foreign file is never replaced; one writer per file
+                from motok.cli.output_files import claim_output_file
+                run(claim_output_file, ctx, v, label)
         return value
     return check
 

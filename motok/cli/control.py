@@ -12,6 +12,7 @@ import typer
 from motok.cli.common import (Device, Resume, data_option, device_sets, existing, output_option, print_json,
                               recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples, renamed
+from motok.cli.outputs import Force, train_into
 
 JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
 
@@ -37,7 +38,7 @@ def train_cmd(
                                    help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
     humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached).",
                                             callback=existing),
-    resume: bool = Resume,
+    resume: bool = Resume, force: bool = Force,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the LR schedule still "
                                         "spans the recipe's iterations; --resume continues)."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from this expert run's weights (fresh "
@@ -52,8 +53,9 @@ def train_cmd(
     from motok.control.expert.train import train_from_data
 
     cfg = run(load_config, ExpertConfig, recipe, device_sets(device) + sets)
-    summary = run(train_from_data, cfg, data, out, clips=clips, split=split, humanoid=humanoid, resume=resume,
-                  until=until, init=init)
+    summary = train_into(out, lambda where: train_from_data(cfg, data, where, clips=clips, split=split,
+                                           humanoid=humanoid, resume=resume, until=until, init=init),
+                         resume=resume, force=force)
     report(summary, as_json, "control expert train")
 
 

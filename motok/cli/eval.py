@@ -11,6 +11,7 @@ import typer
 from motok.cli.common import (H5, JsonOut, Sets, data_option, existing, fail, output_option, print_json,
                               recipe_option, report, results, run)
 from motok.cli.conventions import examples, renamed
+from motok.cli.outputs import Force, train_into
 
 app = typer.Typer(help="Evaluation: train a text-motion evaluator, the T2M metrics, reconstruction and "
                        "physical plausibility.", no_args_is_help=True)
@@ -24,13 +25,14 @@ Recipe = recipe_option("recipes/eval/")
 def train_evaluator(
     data: Path = data_option("A motion-dataset with captions (.h5)."),
     out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),
-    recipe: Optional[Path] = Recipe, sets: list[str] = Sets, as_json: bool = JsonOut,
+    recipe: Optional[Path] = Recipe, sets: list[str] = Sets, force: bool = Force, as_json: bool = JsonOut,
 ):
     """Train the contrastive text-motion co-embedding; reports retrieval on the test split vs chance."""
     from motok.eval.evaluator import resolve_config
     from motok.eval.evaluator import train_evaluator as _train
     cfg = run(resolve_config, recipe, sets)
-    report(run(_train, cfg, data, out), as_json, "eval train-evaluator")
+    summary = train_into(out, lambda where: _train(cfg, data, where), force=force, resumable=False)
+    report(summary, as_json, "eval train-evaluator")
 
 
 # -m meant --motions here and --codebooks in `tokenize`: it keeps its old meaning here, hidden,

@@ -11,6 +11,7 @@ import typer
 from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, existing, fail, input_option, output_option,
                               recipe_option, report, results, run)
 from motok.cli.conventions import examples, renamed
+from motok.cli.outputs import Force, train_into
 
 app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes): train, sample.",
                   no_args_is_help=True)
@@ -39,13 +40,14 @@ def train(
     tokens: Path = data_option("A tokens artifact (from `tokenize encode`) with captions."),
     out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/gpt/"), sets: list[str] = Sets,
-    resume: bool = Resume, as_json: bool = JsonOut,
+    resume: bool = Resume, force: bool = Force, as_json: bool = JsonOut,
 ):
     """Train the GPT; runs unchanged under `torchrun --nproc_per_node N --no-python motok ...`."""
     from motok.gpt.train import resolve_config
     from motok.gpt.train import train as _train
     cfg = run(resolve_config, recipe, sets, out, resume)
-    summary = run(_train, cfg, tokens, out, resume=resume)
+    summary = train_into(out, lambda where: _train(cfg, tokens, where, resume=resume), resume=resume,
+                         force=force)
     if int(os.environ.get("RANK", "0")) == 0:  # every torchrun rank returns the summary; one prints it
         _report(summary, as_json, "gpt train")
 

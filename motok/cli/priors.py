@@ -14,6 +14,7 @@ import typer
 from motok.cli.common import (H5, Device, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
                               output_option, recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples, renamed
+from motok.cli.outputs import Force, train_into
 from motok.control.priors.kinds import KINDS
 from motok.control.tasks import registry
 
@@ -32,7 +33,7 @@ def distill_cmd(
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the expert's "
                                         "clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
-    resume: bool = Resume,
+    resume: bool = Resume, force: bool = Force,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the weight schedules "
                                         "still span the recipe's iterations; --resume continues)."),
     device: Optional[str] = Device,
@@ -44,8 +45,9 @@ def distill_cmd(
     from motok.control.priors.model import DistillConfig
 
     cfg = run(load_config, DistillConfig, recipe, device_sets(device) + sets)
-    summary = run(train_from_expert, cfg, expert, out, prior=prior, data=data, clips=clips, split=split,
-                  resume=resume, until=until)
+    summary = train_into(out, lambda where: train_from_expert(cfg, expert, where, prior=prior, data=data,
+                                           clips=clips, split=split, resume=resume, until=until),
+                         resume=resume, force=force)
     report(summary, as_json, f"control distill {prior}")
 
 

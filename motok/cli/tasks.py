@@ -13,6 +13,7 @@ import typer
 from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, output_option,
                               recipe_option, report, run)
 from motok.cli.conventions import examples, renamed
+from motok.cli.outputs import Force, train_into
 from motok.control.tasks import registry
 
 TASK_NAMES = " | ".join(registry.names())
@@ -31,7 +32,7 @@ def train_cmd(
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
                                         "prior's clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
-    resume: bool = Resume,
+    resume: bool = Resume, force: bool = Force,
     until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (--resume continues)."),
     device: Optional[str] = Device,
     as_json: bool = JsonOut,
@@ -42,8 +43,9 @@ def train_cmd(
     from motok.control.highlevel.train import train_from_prior
 
     cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
-    summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,
-                  split=split, resume=resume, until=until)
+    summary = train_into(out, lambda where: train_from_prior(cfg, prior, where, task=task, codebooks=codebooks,
+                                           data=data, clips=clips, split=split, resume=resume, until=until),
+                         resume=resume, force=force)
     report(summary, as_json, f"control train {cfg.task if task is None else task}")
 
 

@@ -10,6 +10,7 @@ import typer
 
 from motok.cli.common import H5, JsonOut, Resume, Sets, data_option, output_option, recipe_option, report, results, run
 from motok.cli.conventions import examples, renamed
+from motok.cli.outputs import Force, train_into
 
 app = typer.Typer(help="Motion tokenizer (T2M-GPT VQ-VAE): train, encode, decode, eval.", no_args_is_help=True)
 
@@ -39,13 +40,13 @@ def train(
     data: Path = data_option("Training motion-dataset (.h5)."),
     out: Path = output_option(help="Run folder (checkpoint bundle + metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/tokenizer/"), sets: list[str] = Sets,
-    resume: bool = Resume, as_json: bool = JsonOut,
+    resume: bool = Resume, force: bool = Force, as_json: bool = JsonOut,
 ):
     """Train the VQ-VAE; runs unchanged under `torchrun --nproc_per_node N --no-python motok ...`."""
     from motok.tokenizer.train import resolve_config
     from motok.tokenizer.train import train as _train
     cfg = run(resolve_config, recipe, sets, out, resume)
-    summary = run(_train, cfg, data, out, resume=resume)
+    summary = train_into(out, lambda where: _train(cfg, data, where, resume=resume), resume=resume, force=force)
     if int(os.environ.get("RANK", "0")) == 0:  # every torchrun rank returns the summary; one prints it
         _report(summary, as_json, "tokenize train")
 

@@ -22,7 +22,7 @@ BANDAI_FOLDER = "bandai-namco"  # under the data root
 BANDAI_ANNOTATIONS = "bandai-namco/annotations"
 
 
-def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad) -> tuple:
+def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad, broken: set[str] | None = None) -> tuple:
     """What the inputs hold, checked before any clip is parsed: names that occur twice, split
     entries that name no input (the ``pattern`` covers them, no ``limit``), caption files that
     are missing or malformed (``bad`` raises, or records them under ``skip_bad``), a
@@ -30,11 +30,12 @@ def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad) -> tuple
     unknown), ``{clip: captions}`` and the names whose captions were bad (not to be parsed).
 
     Listing a compressed tar costs one decompression, so it is listed only when there is
-    something to check against (annotations or a reference clip)."""
+    something to check against (annotations or a reference clip). An archive that breaks while
+    being listed is ``bad``; skipped, its path is added to ``broken`` and its clips left out."""
     if ann is None and cfg.reference_clip is None:
         known = [count_sources(p, pattern=cfg.clips + ".*") for p in inputs]  # None: a compressed tar
         return (None if None in known else min(sum(known), cfg.limit or sum(known))), {}, set()
-    listed = [(n, o) for p in inputs for n, o in list_sources(p) if fnmatchcase(n, cfg.clips)][:cfg.limit]
+    listed = [(n, o) for p in inputs for n, o in _listing(p, bad, broken) if fnmatchcase(n, cfg.clips)][:cfg.limit]
     names = [n for n, _ in listed]
     dup = sorted({n for n in names if names.count(n) > 1})[:5] if len(set(names)) != len(names) else []
     if dup:
@@ -58,6 +59,17 @@ def check_inputs(cfg, inputs: list[Path], ann: Annotations | None, bad) -> tuple
         raise UnknownNameError(f"reference_clip {cfg.reference_clip!r} is not among the {len(names)} clip(s) of the "
                                f"inputs matching {cfg.clips!r}")
     return len(names), captions, excluded
+
+
+def _listing(path: Path, bad, broken: set[str] | None) -> list[tuple[str, str]]:
+    try:
+        return list_sources(path)
+    except MotionFormatError as e:
+        if e.source != str(path) or broken is None:
+            raise
+        bad(BadInput(str(path), e))
+        broken.add(str(path))
+        return []
 
 
 def _selection_hint(names: list[str], pattern: str) -> str:

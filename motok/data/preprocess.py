@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -36,12 +37,13 @@ from motok.data.annotations import Annotations
 from motok.data.bvh import MotionFormatError, parse_bvh
 from motok.data.dataset import Clip, write_motion
 from motok.data.inputs import BadInput, check_inputs, labels_from_name, resolve_annotations, resolve_input
-from motok.data.sources import MotionSource, iter_sources, load_npy_positions
+from motok.data.sources import MotionSource, check_readable, iter_sources, load_npy_positions
 from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
 from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
+from motok.workers import die_with_parent
 
 
 @dataclass
@@ -169,7 +171,24 @@ def _feature_job(args):
 
 
 def _pool(jobs: int):
-    return ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("fork")) if jobs > 1 else None
+    if jobs <= 1:
+        return None
+    # Workers die with this process, even by kill -9 (they would otherwise wait on their queue forever).
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("fork"), initializer=die_with_parent,
+                               initargs=(os.getpid(),))
+
+
+def readable(inputs: list[Path], bad) -> list[Path]:
+    """The inputs whose archives open; each other one is ``bad`` (raised, or skipped and reported)."""
+    kept = []
+    for p in inputs:
+        try:
+            check_readable(p)
+        except MotionFormatError as e:
+            bad(BadInput(str(p), e))
+            continue
+        kept.append(p)
+    return kept
 
 
 def _map(pool, fn, items, progress, task):
@@ -228,19 +247,29 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
         raise MotionFormatError(where, f"no clip matching {cfg.clips!r} could be loaded")
 
     # Everything that can be known before a clip is parsed is checked now, not after minutes of work.
-    total, captions, excluded = check_inputs(cfg, inputs, ann, bad)
+    inputs = readable(inputs, bad)
+    if not inputs:
+        nothing_left("opening the inputs")
+    broken: set[str] = set()  # archives found damaged while listing or streaming them (skip_bad)
+    total, captions, excluded = check_inputs(cfg, inputs, ann, bad, broken)
 
     def selected():
         n = 0
-        for path in inputs:
-            for src in iter_sources(path):
-                if not fnmatchcase(src.name, cfg.clips):
-                    continue
-                if cfg.limit is not None and n >= cfg.limit:
-                    return
-                n += 1
-                if src.name not in excluded:
-                    yield src
+        for path in (p for p in inputs if str(p) not in broken):
+            try:
+                for src in iter_sources(path):
+                    if not fnmatchcase(src.name, cfg.clips):
+                        continue
+                    if cfg.limit is not None and n >= cfg.limit:
+                        return
+                    n += 1
+                    if src.name not in excluded:
+                        yield src
+            except MotionFormatError as e:
+                if e.source != str(path):
+                    raise
+                bad(BadInput(str(path), e))  # the archive itself: its clips go with it
+                broken.add(str(path))
 
     loaded: list[_Loaded] = []
     pool = _pool(cfg.jobs)
@@ -260,6 +289,7 @@ def preprocess(cfg: PreprocessConfig, out: str | Path, data_root: str | Path | N
                                                         f"{skeleton.name!r} of earlier clips")))
                     continue
                 loaded.append(clip)
+            loaded = [c for c in loaded if not any(c.origin.startswith(b + ":") for b in broken)]
             if not loaded:
                 nothing_left("reading")
             loaded.sort(key=lambda c: c.name)

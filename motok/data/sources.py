@@ -265,3 +265,24 @@ def load_npy_positions(data: bytes, source) -> np.ndarray:
         t, j, _ = np.argwhere(bad)[0]
         raise MotionFormatError(src, f"frame {t}, joint {j}: expected finite positions, found {arr[t, j].tolist()}")
     return arr.astype(np.float64)
+
+
+def check_readable(path) -> None:
+    """Raise :class:`MotionFormatError` now if ``path`` is an archive that cannot be opened (not
+    a zip or tar at all, or not decompressible): found before any clip is parsed, and skippable
+    with ``--skip-bad``. A compressed tar damaged further in is found while streaming it."""
+    path = Path(path)
+    if path.is_dir() or path.suffix.lower() in KIND_OF_SUFFIX or not path.exists():
+        return
+    what = _input_type(path)
+    try:
+        if what == "zip":
+            with zipfile.ZipFile(path):
+                return
+        if what == "tar":
+            with _open_stream(path) as raw, tarfile.open(fileobj=raw, mode="r|") as tf:
+                tf.next()  # the first header: a wrong or broken compression fails here
+            return
+    except _READ_ERRORS as e:
+        raise MotionFormatError(str(path), f"not a readable archive ({type(e).__name__}: {e})") from e
+    # Anything else (not an archive at all) is iter_sources' "unknown input type".

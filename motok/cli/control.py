@@ -50,11 +50,11 @@ def train_cmd(
     as_json: bool = JsonOut,
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
-    from motok.config import load_config
-    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.model import KIND, ExpertConfig
     from motok.control.expert.train import train_from_data
+    from motok.resume import resolve_config
 
-    cfg = run(load_config, ExpertConfig, recipe, device_sets(device) + sets)
+    cfg = run(resolve_config, ExpertConfig, recipe, device_sets(device) + sets, out, KIND, resume)
     summary = run(train_from_data, cfg, data, out, clips=clips, split=split, humanoid=humanoid, resume=resume,
                   until=until, init=init)
     report(summary, as_json, "control expert train")

@@ -41,11 +41,11 @@ def distill_cmd(
     as_json: bool = JsonOut,
 ):
     """Distil the expert into a latent prior: the student acts, the expert labels (DAgger), Eq. 6."""
-    from motok.config import load_config
     from motok.control.priors.distill import train_from_expert
-    from motok.control.priors.model import DistillConfig
+    from motok.control.priors.model import KIND, DistillConfig
+    from motok.resume import resolve_config
 
-    cfg = run(load_config, DistillConfig, recipe, device_sets(device) + sets)
+    cfg = run(resolve_config, DistillConfig, recipe, device_sets(device) + sets, out, KIND, resume)
     summary = run(train_from_expert, cfg, expert, out, prior=prior, data=data, clips=clips, split=split,
                   resume=resume, until=until)
     report(summary, as_json, f"control distill {prior}")

@@ -43,14 +43,15 @@ def train_cmd(
     as_json: bool = JsonOut,
 ):
     """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
-    from motok.config import load_config
-    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.policy import KIND, TaskTrainConfig
     from motok.control.highlevel.train import train_from_prior
+    from motok.resume import resolve_config
 
-    cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
-    summary = run(train_from_prior, cfg, prior, out, task=task, codebooks=codebooks, data=data, clips=clips,
-                  split=split, resume=resume, until=until)
-    report(summary, as_json, f"control train {cfg.task if task is None else task}")
+    # --task and --codebooks are settings like any other: on resume they are compared with the run's
+    flags = [f"task={task}"] * (task is not None) + [f"codebooks={codebooks}"] * (codebooks is not None)
+    cfg = run(resolve_config, TaskTrainConfig, recipe, device_sets(device) + sets + flags, out, KIND, resume)
+    summary = run(train_from_prior, cfg, prior, out, data=data, clips=clips, split=split, resume=resume, until=until)
+    report(summary, as_json, f"control train {cfg.task}")
 
 
 def perturb_cmd(

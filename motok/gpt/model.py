@@ -242,6 +242,11 @@ class TrainConfig:
     device: str = "auto"  # auto | cpu | cuda
     threads: In[int, ">= 0"] = 0  # torch intra-op threads; 0 = torch's default
 
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length (the schedule's milestones
+        are absolute iterations) and how often it logs, evaluates and saves, none of which changes a step."""
+        return {"iterations", "log_every", "eval_every", "save_every"}
+
 
 def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> MotionGPT:
     cfg = cfg if isinstance(cfg, TrainConfig) else from_dict(TrainConfig, cfg)

@@ -54,6 +54,11 @@ class ExpertConfig:
     amp: AMPConfig = field(default_factory=AMPConfig)  # the style discriminator
     sampling: SamplingConfig = field(default_factory=SamplingConfig)  # difficulty-weighted start clips
 
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length, unless the learning-rate
+        schedule spans it; anything else would make the run differ from an uninterrupted one."""
+        return {"iterations"} if self.ppo.lr_schedule == "constant" else set()
+
 
 def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:
     pol = EncoderDecoderPolicy(obs_dim, goal_dim, action_dim, n.latent_dim, tuple(n.encoder), tuple(n.decoder),

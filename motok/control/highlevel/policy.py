@@ -133,8 +133,16 @@ class TaskTrainConfig:
     ppo: PPOConfig = field(default_factory=paper_ppo)  # the update (Tables 6-8's values by default)
     net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)  # the high-level policy and critic
 
+    # Taken from the prior when a run starts and saved resolved: a resume's recipe may leave them out.
+    RESUME_DERIVED = ("env.control_hz", "env.target_filter")
+
     def check(self) -> None:
         registry.check(self.task)
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length, unless the learning-rate
+        schedule spans it."""
+        return {"iterations"} if self.ppo.lr_schedule == "constant" else set()
 
 
 def task_mdp(cfg: TaskTrainConfig, hum: Humanoid, lib: ReferenceLibrary, model: LatentPrior, scale: float,

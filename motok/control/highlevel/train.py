@@ -126,6 +126,7 @@ def train_from_prior(cfg: TaskTrainConfig, prior_run, run, *, task: str | None =
     if codebooks is not None:
         cfg.codebooks = codebooks
         checked(cfg)  # the option's range is the field's: task learning chooses codes in at least one codebook
+    cfg.check()  # a task named in the recipe or --set is known before anything is loaded
     prior_run, run = Path(prior_run), Path(run)
     if resume and (run / "bundle.json").exists():
         saved = read_meta(run, KIND)["extra"]["task"]

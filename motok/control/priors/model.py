@@ -270,6 +270,15 @@ class DistillConfig:
     prior: PriorConfig = field(default_factory=PriorConfig)  # the prior's kind and sizes
     loss: LossConfig = field(default_factory=LossConfig)  # Eq. 6's weights
 
+    # Set when a run starts (--prior, the expert's filter) and saved resolved: a resume's recipe may leave them out.
+    RESUME_DERIVED = ("prior.kind", "env.target_filter")
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length, unless a loss weight
+        ramps over a share of it."""
+        ramps = [w for w in (self.loss.mm, self.loss.kl) if w.start != w.end and w.ramp > 0]
+        return set() if ramps else {"iterations"}
+
 
 def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
     """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""

@@ -195,5 +195,6 @@ def test_capped_kernels_are_recorded_and_named_as_other_arithmetic():
     assert {k: capped["env"][k] for k in caps} == caps
     # env always differs (the caps are new); the kernels wherever this machine dispatched more than the caps allow
     expected = [k for k, moved in (("torch_cpu_capability", here["torch_cpu_capability"] != "DEFAULT"),
-                                   ("numpy_simd", bool(here["numpy_simd"])), ("env", True)) if moved]
+                                   ("numpy_simd", bool(here["numpy_simd"])), ("env", True),
+                                   ("torch_threads", here["torch_threads"] != capped["torch_threads"])) if moved]
     assert [c.split(":")[0] for c in arithmetic_differences(here, capped)] == expected

@@ -39,33 +39,33 @@ def _modules():
             yield m.name
 
 
+LOADERS = ("load_config", "resolve_config", "resume_config")  # what fills a config class from a recipe
+
+
 def _loaded_config_classes() -> set[type]:
-    """The classes motok fills from recipes: every ``load_config(CLS, ...)`` and
-    ``run(load_config, CLS, ...)`` in the code, resolved in the module that makes the call."""
+    """The classes motok fills from recipes: the first argument of every ``load_config(CLS, ...)``,
+    ``resolve_config(CLS, ...)`` and ``run(load_config, CLS, ...)`` in the code that names a
+    dataclass, resolved in the module that makes the call."""
     found = set()
     for path in MOTOK.rglob("*.py"):
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Call) and node.args:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and node.args and isinstance(node.func, ast.Name):
                 args = node.args
-                if isinstance(node.func, ast.Name) and node.func.id == "run" and isinstance(args[0], ast.Name) \
-                        and args[0].id == "load_config":
+                if node.func.id == "run" and isinstance(args[0], ast.Name) and args[0].id in LOADERS:
                     args = args[1:]
-                elif not (isinstance(node.func, ast.Name) and node.func.id == "load_config"):
+                elif node.func.id not in LOADERS:
                     continue
                 if args and isinstance(args[0], ast.Name):
                     found.add((path, args[0].id))
     classes = set()
     for path, name in found:
-        src = path.read_text()
-        # the class is imported inside the function or at the top: find "import NAME" in the file
-        for node in ast.walk(ast.parse(src)):
-            if isinstance(node, ast.ImportFrom) and any(a.name == name for a in node.names):
-                classes.add(getattr(importlib.import_module(node.module), name))
-                break
-        else:
-            mod = ".".join(path.relative_to(MOTOK.parent).with_suffix("").parts)
-            classes.add(getattr(importlib.import_module(mod), name))
+        # imported inside the function or at the top of the file, or defined there
+        imports = [n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.ImportFrom)
+                   and any(a.name == name for a in n.names)]
+        mod = imports[0].module if imports else ".".join(path.relative_to(MOTOK.parent).with_suffix("").parts)
+        cls = getattr(importlib.import_module(mod), name, None)
+        if isinstance(cls, type) and dataclasses.is_dataclass(cls):  # not a variable such as ``cls``
+            classes.add(cls)
     return classes
 
 
@@ -182,7 +182,8 @@ def test_the_issue_cases_name_the_field():
     from motok.control.expert.model import ExpertConfig
 
     for sets, says in ((["iterations=-5"], "iterations: -5 must be >= 1"),
-                       (["task.termination_distance=nan"], "task.termination_distance: nan must be a finite number > 0"),
+                       (["task.termination_distance=nan"],
+                        "task.termination_distance: nan must be a finite number > 0"),
                        (["ppo.lr=nan"], "ppo.lr: nan must be"), (["ppo.lr=.inf"], "ppo.lr: inf must be"),
                        (["ppo.gamma=1.5"], "ppo.gamma: 1.5 must be in [0, 1]"),
                        (["seed=100000000000000000000000"], "seed: 100000000000000000000000 is too large")):
@@ -297,7 +298,8 @@ def test_any_number_on_any_option_is_in_range_or_refused(option, data):
     (["eval", "motion-matching", "-d", ".", "--motions", ".", "--threshold", "-1"], "--threshold -1.0 must be > 0"),
     (["control", "generate", "--prior", ".", "-o", "x.h5", "--seconds", "nan"], "--seconds nan must be a finite"),
     (["control", "train", "--prior", ".", "-o", "run", "--codebooks", "0"], "--codebooks 0 must be >= 1"),
-    (["gpt", "sample", "-g", ".", "--text", "a walk", "-o", "x.h5", "--seconds", "abc"], "Invalid value for '--seconds'"),
+    (["gpt", "sample", "-g", ".", "--text", "a walk", "-o", "x.h5", "--seconds", "abc"],
+     "Invalid value for '--seconds'"),
 ])
 def test_the_issue_cases_are_one_line_errors(args, says, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

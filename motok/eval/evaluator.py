@@ -65,7 +65,8 @@ class EvaluatorConfig:
     warmup: In[int, ">= 0"] = 100
     min_frames: In[int, ">= 1"] = 16  # shortest random crop
     max_frames: In[int, ">= 1"] = 160  # longest training crop (bounds padding; Guo uses 196)
-    crop_min_fraction: In[float, "(0, 1]"] = 0.7  # a crop keeps at least this share of the clip, so it still matches the caption
+    # a crop keeps at least this share of the clip, so it still matches the caption
+    crop_min_fraction: In[float, "(0, 1]"] = 0.7
     split: str = "train"
     report_split: str = "test"  # retrieval reported on this split after training
     seed: In[int, ">= 0"] = 0

@@ -225,12 +225,14 @@ class TrainConfig:
     holdout: str = ""
     # Caption augmentation (motok.gpt.augment), all off by default:
     recombine: In[int, ">= 0"] = 0  # new captions per group of clips, recombined from the captions' own phrases
-    word_dropout: In[float, "[0, 1)"] = 0.0  # probability of dropping a word, in word_dropout_variants copies per caption
+    # probability of dropping a word, in word_dropout_variants copies per caption
+    word_dropout: In[float, "[0, 1)"] = 0.0
     word_dropout_variants: In[int, ">= 0"] = 0
     text_noise: In[float, ">= 0"] = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
     caption_dropout: In[float, "[0, 1)"] = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
     guidance: In[float, ">= 0"] = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
-    snap: In[int, ">= 0"] = 0  # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
+    # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
+    snap: In[int, ">= 0"] = 0
     iterations: In[int, ">= 1"] = 2000
     batch_size: In[int, ">= 1"] = 64  # global: split evenly over the ranks
     split: str = "train"

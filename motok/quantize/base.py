@@ -57,7 +57,8 @@ class QuantizerConfig:
     reset_window: In[int, ">= 1"] = 1          # training steps between dead-code checks (1 = every step, as T2M-GPT)
     num_codebooks: In[int, ">= 1"] = 1         # rvq: number of residual codebooks
     rvq_base: str = "ema_reset"    # rvq: how each residual codebook learns (one of vq.VQ_KINDS)
-    quantizer_dropout: In[float, "[0, 1]"] = 1.0  # rvq: probability that a training batch uses only M ~ U{1..N} codebooks
+    # rvq: probability that a training batch uses only M ~ U{1..N} codebooks
+    quantizer_dropout: In[float, "[0, 1]"] = 1.0
     # Codebook start (see motok.quantize.vq.INITS): "uniform" U(-1/K, 1/K) for every kind (the
     # shared default, which the physics priors rely on); "batch": encoder outputs of the first
     # training batch; "t2m_gpt": per kind as T2M-GPT's code (uniform for vq, batch for ema, reset,

@@ -50,7 +50,8 @@ def from_mj(v: np.ndarray) -> np.ndarray:
 @dataclass
 class HumanoidConfig:
     total_mass: In[float, "> 0"] = 65.0  # kg; densities are scaled to reach it
-    timestep: In[float, "> 0"] = 1.0 / 120.0  # 4 substeps per 30 Hz control step; docs/sim.md has the stability/speed measurements
+    # 4 substeps per 30 Hz control step; docs/sim.md has the stability/speed measurements
+    timestep: In[float, "> 0"] = 1.0 / 120.0
     control_hz: In[float, "> 0"] = 30.0
     range_margin_deg: In[float, "[0, 180]"] = 20.0
     stiffness_per_kg: In[float, ">= 0"] = 15.0  # Nm/rad per kg moved: the ankle then holds ~1000 Nm/rad, > m g l
@@ -87,7 +88,8 @@ class HumanoidConfig:
     # The contact model (docs/sim.md "Feet"): part of the MJCF and of its metadata, so a controller
     # trained on one is never resumed or evaluated on another by mistake. The defaults are MuJoCo's.
     cone: str = "pyramidal"  # friction cone: "pyramidal" | "elliptic"
-    impratio: In[float, ">= 1"] = 1.0  # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
+    # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
+    impratio: In[float, ">= 1"] = 1.0
     noslip_iterations: In[int, ">= 0"] = 0  # MuJoCo's no-slip post-solve on the friction rows (0: off)
     contact_solref: In[tuple[float, float], "> 0"] = (0.02, 1.0)  # (time constant s, damping ratio) of every contact
     contact_solimp: In[tuple[float, float, float], "> 0"] = (0.9, 0.95, 0.001)  # (dmin, dmax, width m) of every contact

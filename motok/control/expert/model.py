@@ -38,7 +38,8 @@ class NetConfig:
 @dataclass
 class ExpertConfig:
     seed: In[int, ">= 0"] = 0  # networks, task draws, minibatches
-    iterations: In[int, ">= 1"] = 1000  # PPO iterations (each: ppo.horizon steps of every environment, then the updates)
+    # PPO iterations (each: ppo.horizon steps of every environment, then the updates)
+    iterations: In[int, ">= 1"] = 1000
     w_im: In[float, ">= 0"] = 0.5  # weight of the imitation reward r_im (Eq. 10)
     w_style: In[float, ">= 0"] = 0.5  # weight of AMP's style reward r_style (Eq. 11); 0 also turns AMP off
     save_every: In[int, ">= 1"] = 50  # iterations between checkpoints (every one resumes exactly)

@@ -54,7 +54,8 @@ class PerturbConfig:
     recovery_seconds: In[float, "> 0"] = 3.0
     fall_height: In[float, "> 0"] = 0.5  # m, head height
     min_dv: In[float, ">= 0"] = 0.05  # m/s: a velocity change beyond gravity's that means a contact
-    contact_slack: In[float, ">= 0"] = 0.05  # m: how near the humanoid the ball's path must pass for the contact to be a hit
+    # m: how near the humanoid the ball's path must pass for the contact to be a hit
+    contact_slack: In[float, ">= 0"] = 0.05
     seed: In[int, ">= 0"] = 0
 
     def __post_init__(self):

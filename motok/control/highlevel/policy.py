@@ -50,7 +50,8 @@ register_kind(KIND, (1,))
 
 @dataclass
 class HighLevelNetConfig:
-    policy: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of the high-level policy's MLP
+    # hidden sizes of the high-level policy's MLP
+    policy: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     value: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of the critic's MLP
     activation: str = "elu"  # relu | elu | tanh | silu
     std: In[float, "> 0"] = 0.2  # continuous prior: exploration std of the offset u (fixed, as in the paper)

@@ -36,7 +36,8 @@ class ImitationConfig:
     k_q: In[float, ">= 0"] = 2.0  # exp(-k_q e_q), e_q the hinge angle error (rad^2)
     k_alpha: In[float, ">= 0"] = 0.5  # exp(-k_alpha e_alpha), e_alpha the mean squared hinge velocity error ((rad/s)^2)
     k_ee: In[float, ">= 0"] = 40.0  # exp(-k_ee e_ee), e_ee the root-relative end-effector position error (m^2)
-    k_feet: In[float, ">= 0"] = 0.0  # exp(-k_feet e_feet), e_feet the feet's velocity error ((m/s)^2); 0 leaves it out (Eq. 10)
+    # exp(-k_feet e_feet), e_feet the feet's velocity error ((m/s)^2); 0 leaves it out (Eq. 10)
+    k_feet: In[float, ">= 0"] = 0.0
 
 
 def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict:

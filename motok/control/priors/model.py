@@ -57,9 +57,11 @@ register_kind(KIND, (1,))
 class PriorConfig:
     kind: str = ""  # one of KINDS; `motok control distill --prior` sets it
     latent_dim: In[int, ">= 1"] = 64
-    posterior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_phi(s, s~) -> z
+    # hidden sizes of f_phi(s, s~) -> z
+    posterior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     prior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_theta(s) -> z_p
-    decoder_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of pi_low(s, z_bar) -> a
+    # hidden sizes of pi_low(s, z_bar) -> a
+    decoder_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     activation: str = "elu"  # relu | elu | tanh | silu
     log_std_min: In[float, "any"] = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
     log_std_max: In[float, "any"] = 1.0
@@ -249,7 +251,8 @@ class LossConfig:
 @dataclass
 class DistillConfig:
     seed: In[int, ">= 0"] = 0  # the student's weights, task draws, minibatches
-    iterations: In[int, ">= 1"] = 3000  # DAgger iterations (each: horizon steps of every environment, then epochs of Eq. 6)
+    # DAgger iterations (each: horizon steps of every environment, then epochs of Eq. 6)
+    iterations: In[int, ">= 1"] = 3000
     save_every: In[int, ">= 1"] = 50  # iterations between checkpoints (every one resumes exactly)
     eval_every: In[int, ">= 0"] = 0  # iterations between imitation evaluations of the student, logged as eval_*
     eval_per_group: In[int, ">= 0"] = 0  # eval_* on this many clips per content x style (0: every clip)

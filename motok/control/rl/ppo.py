@@ -57,7 +57,8 @@ class PPOConfig:
     lr_min: In[float, ">= 0"] = 0.0
     adam_eps: In[float, "> 0"] = 1e-5  # Adam epsilon (CleanRL's)
     norm_adv: bool = True  # normalise advantages per minibatch
-    target_kl: In[float | None, "> 0"] = None  # stop an update's epochs once the approximate KL exceeds this (None: never)
+    # stop an update's epochs once the approximate KL exceeds this (None: never)
+    target_kl: In[float | None, "> 0"] = None
 
 
 def gae(rewards, values, next_values, terminated, truncated, gamma: float, lam: float):

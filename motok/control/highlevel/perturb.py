@@ -56,7 +56,7 @@ class PerturbConfig:
     min_dv: In[float, ">= 0"] = 0.05  # m/s: a velocity change beyond gravity's that means a contact
     # m: how near the humanoid the ball's path must pass for the contact to be a hit
     contact_slack: In[float, ">= 0"] = 0.05
-    seed: In[int, ">= 0"] = 0
+    seed: In[int, ">= 0"] = 0  # the throws' draws
 
     def __post_init__(self):
         if self.aim not in ("root", "body"):

@@ -2,7 +2,9 @@
 
 Unknown keys are errors (a typo in a recipe must not silently train the default), nested
 dataclasses are addressed with dots (``--set optim.lr=1e-4``), and values are parsed as YAML
-so numbers, booleans and lists come out typed.
+so numbers, booleans and lists come out typed. Every number is then checked against the range its
+field declares (``In[float, "> 0"]``, :mod:`motok.ranges`), so a NaN learning rate or a negative
+iteration count stops here, with the field's name, instead of deep inside a training.
 
 A config whose key was renamed lists ``RENAMED_KEYS = {"old": "new"}`` (a ``ClassVar``): the old
 key still works, in a recipe, a ``--set`` or a stored config, with a note naming the new one.
@@ -21,6 +23,7 @@ import yaml
 
 from motok.errors import MotokError
 from motok.progress import info
+from motok.ranges import check_config
 
 T = TypeVar("T")
 
@@ -147,7 +150,16 @@ def load_config(cls: type[T], recipe: str | Path | None = None, overrides=(), ba
                 raise ConfigError(f"--set {item!r}: {k!r} is not a nested section")
             node = node[k]
         node[keys[-1]] = value
-    return from_dict(cls, d, where)
+    return checked(from_dict(cls, d, where))
+
+
+def checked(cfg: T) -> T:
+    """``cfg`` if every number in it is in its field's range, else one error naming each field
+    out of range, its value and the range."""
+    problems = check_config(cfg)
+    if problems:
+        raise ConfigError("; ".join(problems))
+    return cfg
 
 
 def _renamed_path(cls, keys: list[str], where: str) -> list[str]:

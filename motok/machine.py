@@ -22,7 +22,7 @@ ARITHMETIC_ENV = ("ATEN_CPU_CAPABILITY", "MKL_CBWR", "DNNL_MAX_CPU_ISA", "NPY_DI
                   "OPENBLAS_NUM_THREADS", "CUBLAS_WORKSPACE_CONFIG")
 PACKAGES = ("torch", "numpy", "mujoco", "h5py")
 # The fields whose difference means "not the same arithmetic" (the rest describe, e.g. the host name).
-ARITHMETIC_KEYS = ("cpu", "torch_cpu_capability", "numpy_simd", "packages", "env")
+ARITHMETIC_KEYS = ("cpu", "torch_cpu_capability", "numpy_simd", "packages", "env", "torch_threads")
 
 
 def _cpu() -> str:
@@ -68,12 +68,14 @@ def _static() -> dict:
 
 def machine_record() -> dict:
     """This process's machine: CPU, dispatched kernels, package versions and the variables above
-    that are set. torch's kernel level is read only when torch is already imported (a record
-    never costs a torch import), and is the one value that can change while the process runs."""
+    that are set. torch's kernel level and its intra-op thread count are read only when torch is
+    already imported (a record never costs a torch import); the threads are the values that change
+    while a process runs, and a reduction split over another number of threads adds in another order."""
     rec = dict(_static())
     torch = sys.modules.get("torch")
     if torch is not None:
         rec["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+        rec["torch_threads"] = torch.get_num_threads()
     rec["env"] = {k: os.environ[k] for k in ARITHMETIC_ENV if k in os.environ}
     return rec
 

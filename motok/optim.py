@@ -5,16 +5,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from motok.ranges import In
+
 
 @dataclass
 class OptimConfig:
-    lr: float = 2e-4
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
-    weight_decay: float = 0.0
-    warmup: int = 200  # linear warm-up iterations
-    milestones: list[int] = field(default_factory=list)  # absolute iterations where lr *= gamma
-    gamma: float = 0.05
-    grad_clip: float = 0.0  # 0 = off
+    lr: In[float, "> 0"] = 2e-4
+    betas: In[list[float], "[0, 1)"] = field(default_factory=lambda: [0.9, 0.99])
+    weight_decay: In[float, ">= 0"] = 0.0
+    warmup: In[int, ">= 0"] = 200  # linear warm-up iterations
+    milestones: In[list[int], ">= 0"] = field(default_factory=list)  # absolute iterations where lr *= gamma
+    gamma: In[float, "> 0"] = 0.05
+    grad_clip: In[float, ">= 0"] = 0.0  # 0 = off
 
 
 def lr_factor(it: int, cfg: OptimConfig) -> float:

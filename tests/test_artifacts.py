@@ -163,8 +163,9 @@ def test_provenance_records_the_machine_and_its_kernels(small_dataset):
     assert m["cpu"] and m["cores"] >= 1 and set(m["numpy_simd"]) <= set(__cpu_dispatch__)
     assert m["packages"]["numpy"] == np.__version__ and m["packages"]["h5py"] == metadata.version("h5py")
     assert m["packages"]["torch"] == metadata.version("torch") and m["torch_cpu_capability"]
-    now = machine_record()  # the dataset was made in this process (its env may have had other test settings)
-    assert {k: v for k, v in m.items() if k != "env"} == {k: v for k, v in now.items() if k != "env"}
+    # the dataset was made in this process (its env and torch threads may have had other test settings)
+    now, moment = machine_record(), ("env", "torch_threads")
+    assert {k: v for k, v in m.items() if k not in moment} == {k: v for k, v in now.items() if k not in moment}
     old = json.loads(_prov().to_json())
     del old["machine"]
     assert Provenance.from_json(json.dumps(old)).machine == {}
@@ -195,5 +196,6 @@ def test_capped_kernels_are_recorded_and_named_as_other_arithmetic():
     assert {k: capped["env"][k] for k in caps} == caps
     # env always differs (the caps are new); the kernels wherever this machine dispatched more than the caps allow
     expected = [k for k, moved in (("torch_cpu_capability", here["torch_cpu_capability"] != "DEFAULT"),
-                                   ("numpy_simd", bool(here["numpy_simd"])), ("env", True)) if moved]
+                                   ("numpy_simd", bool(here["numpy_simd"])), ("env", True),
+                                   ("torch_threads", here["torch_threads"] != capped["torch_threads"])) if moved]
     assert [c.split(":")[0] for c in arithmetic_differences(here, capped)] == expected

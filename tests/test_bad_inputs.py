@@ -49,7 +49,7 @@ def no_generation(monkeypatch):
 
 
 @pytest.mark.parametrize("args,says", [
-    (["--top-k", "0"], "--top-k 0 must be between 1 and"),
+    (["--top-k", "0"], "--top-k 0 must be >= 1"),
     (["--top-k", "-3"], "--top-k -3"),
     (["--top-k", "33"], "between 1 and 32, the codebook size"),
     (["--top-p", "0"], "--top-p 0.0 must be in (0, 1]"),
@@ -137,11 +137,11 @@ def test_mocap_without_usable_motion(bvh, tmp_path, name, says):
 
 
 @pytest.mark.parametrize("args,says", [
-    (["preprocess", "-d", "TAKE", "--fps", "0"], "fps 0.0 must be a positive number"),
-    (["preprocess", "-d", "TAKE", "--fps", "-5"], "fps -5.0 must be a positive number"),
+    (["preprocess", "-d", "TAKE", "--fps", "0"], "--fps 0.0 must be > 0"),
+    (["preprocess", "-d", "TAKE", "--fps", "-5"], "--fps -5.0 must be > 0"),
     (["preprocess", "-d", "TAKE", "-j", "0"], "jobs 0 must be >= 1"),
     (["preprocess", "-d", "TAKE", "--fps", "0", "--skip-bad"], "fps 0.0"),  # not "no clip could be loaded"
-    (["plot", "GPT", "--smooth", "1.5"], "smooth must be in [0, 1)"),
+    (["plot", "GPT", "--smooth", "1.5"], "--smooth 1.5 must be in [0, 1)"),
     (["sim", "pd-track", "-d", "DATA", "--seconds", "0"], "--seconds 0.0 must be > 0"),
 ])
 def test_settings_out_of_range(tree, small_dataset, bvh, tmp_path, args, says):

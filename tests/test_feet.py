@@ -201,6 +201,6 @@ def test_the_recipes_humanoid_section_builds_the_world_and_a_resume_keeps_it(sma
     assert hum.meta["config"]["ankle_stiffness_scale"] == 0.5
     assert json.loads((run / "bundle.json").read_text())["config"]["humanoid"]["ankle_stiffness_scale"] == 0.5
     r = CliRunner().invoke(app, [*args, "--set", "humanoid.ankle_stiffness_scale=0.7", "--resume"])
-    assert r.exit_code == 2 and "ankle_stiffness_scale: 0.5 -> 0.7" in r.output, r.output
+    assert r.exit_code == 2 and "humanoid.ankle_stiffness_scale 0.5 -> 0.7" in r.output, r.output
     r = CliRunner().invoke(app, [*args, "--set", "humanoid.ankle_stiffness_scale=0.5", "--resume"])
     assert r.exit_code == 0 and json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 2

@@ -20,8 +20,8 @@ from motok.atomic import strict_json
 from motok.errors import MotokError
 
 __all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "data_option",
-           "device_sets", "existing", "fail", "input_option", "output_option", "print_json", "recipe_option", "report",
-           "results", "run", "valid_device", "wrote"]
+           "device_sets", "existing", "fail", "input_option", "number_option", "output_option", "print_json",
+           "recipe_option", "report", "results", "run", "valid_device", "wrote"]
 
 # Results (tables, JSON, what was written) go to stdout; progress, notes and errors to stderr
 # (motok.progress.console), so `motok ... --json | jq` and `> log` both work.
@@ -164,6 +164,29 @@ def output_option(*names: str, help: str, folder: bool = False, suffixes: tuple[
     suffix the writer knows, a place that can be written."""
     names = names or ("--out", "-o")
     return typer.Option(... if required else default, *names, help=help, callback=_writable(folder, suffixes))
+
+
+def _in_range(within: str):
+    def check(ctx: typer.Context, param, value):
+        if ctx.resilient_parsing or value is None:
+            return value
+        from motok.ranges import range_of
+        rng = range_of(within)
+        label = max((o for o in getattr(param, "opts", []) if o.startswith("-")), key=len, default=param.name)
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            if (why := rng.problem(v)) is not None:
+                fail(f"{label} {v} {why}")
+        return value
+    check.within = within  # what tests read to drive every numeric option with bad values
+    return check
+
+
+def number_option(default, *names: str, within: str, help: str, **kw):
+    """A numeric option and its valid range, checked at parse time, before any work, the way a
+    config field's is (:mod:`motok.ranges`): ``within`` is a range (``"> 0"``, ``"[0, 1)"``) or,
+    for an option that sets a config field, that field (``"motok.data.preprocess:PreprocessConfig.fps"``),
+    so the two cannot disagree."""
+    return typer.Option(default, *names, help=help, callback=_in_range(within), **kw)
 
 
 DataRoot = typer.Option(None, "--data-root", help="Data folder (else $MOTOK_DATA, else ../shared/datasets).")

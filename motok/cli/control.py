@@ -9,10 +9,13 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (Device, Resume, data_option, device_sets, existing, output_option, print_json,
-                              recipe_option, report, results, run, valid_device)
+from motok.cli.common import (Device, Resume, data_option, device_sets, existing, number_option, output_option,
+                              print_json, recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+TRACKING = "motok.control.tasks.imitation:ImitationTaskConfig"
 
 JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
 
@@ -39,8 +42,8 @@ def train_cmd(
     humanoid: Optional[Path] = typer.Option(None, "--humanoid", help="MJCF (default: built from --data, cached).",
                                             callback=existing),
     resume: bool = Resume, force: bool = Force,
-    until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the LR schedule still "
-                                        "spans the recipe's iterations; --resume continues)."),
+    until: Optional[int] = number_option(None, "--until", help="Stop after this iteration (the LR schedule still "
+                                         "spans the recipe's iterations; --resume continues).", within=">= 1"),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from this expert run's weights (fresh "
                                         "optimisers and counters; its humanoid), e.g. one trained on a subset.",
                                         callback=existing),
@@ -48,11 +51,11 @@ def train_cmd(
     as_json: bool = JsonOut,
 ):
     """Train the expert with PPO on r = 0.5 r_im + 0.5 r_style."""
-    from motok.config import load_config
-    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.model import KIND, ExpertConfig
     from motok.control.expert.train import train_from_data
+    from motok.resume import resolve_config
 
-    cfg = run(load_config, ExpertConfig, recipe, device_sets(device) + sets)
+    cfg = run(resolve_config, ExpertConfig, recipe, device_sets(device) + sets, out, KIND, resume)
     summary = train_into(out, lambda where: train_from_data(cfg, data, where, clips=clips, split=split,
                                            humanoid=humanoid, resume=resume, until=until, init=init),
                          resume=resume, force=force)
@@ -75,7 +78,8 @@ def eval_cmd(
                                            suffixes=(".mp4", ".gif"), required=False),
     termination: Optional[str] = typer.Option(None, "--termination",
                                               help="Failure test: 'any' body or the 'mean' (default: the run's)."),
-    distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the run's)."),
+    distance: Optional[float] = number_option(None, "--distance", help="Failure distance in m (default: the run's).",
+                                              within=f"{TRACKING}.termination_distance"),
     device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):

@@ -171,6 +171,18 @@ class MotokGroup(TyperGroup):
         for g in _groups(self):
             _show_flags_as_flags(g)
 
+    def invoke(self, ctx):
+        """A value of the wrong type (``--seconds abc``) is one ``error:`` line and exit 2, like
+        every other bad value, instead of typer's usage panel; a missing option keeps the panel,
+        which shows the usage it lacks."""
+        try:
+            return super().invoke(ctx)
+        except typer.BadParameter as e:
+            if type(e).__name__ == "MissingParameter":  # a subclass typer does not export
+                raise
+            from motok.cli.common import fail
+            fail(e.format_message())
+
 
 def _groups(group) -> list:
     out = []

@@ -8,10 +8,14 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, JsonOut, Sets, data_option, existing, fail, output_option, print_json,
+from motok.cli.common import (H5, JsonOut, Sets, data_option, existing, fail, number_option, output_option, print_json,
                               recipe_option, report, results, run)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+GPT = "motok.gpt.model:TrainConfig"
+T2M = "motok.eval.protocol:T2MConfig"
 
 app = typer.Typer(help="Evaluation: train a text-motion evaluator, the T2M metrics, reconstruction and "
                        "physical plausibility.", no_args_is_help=True)
@@ -49,7 +53,7 @@ def _t2m_command(
     gt_length: bool = typer.Option(False, "--gt-length", help="Generate at the ground-truth length, not until End."),
     split: Optional[str] = typer.Option(None, "--split", help="Split of --data (default test); --motions rows keep "
                                          "their clips of it and those without a split (GPT samples)."),
-    repeats: Optional[int] = typer.Option(None, "--repeats", help="Repeats (default 20)."),
+    repeats: Optional[int] = number_option(None, "--repeats", help="Repeats (default 20).", within=f"{T2M}.repeats"),
     captions: Optional[str] = typer.Option(None, "--captions", metavar="all|unseen",
                                            help="unseen: only the captions that do not occur word for word in "
                                                 "the train split (clips without one are left out; default all)."),
@@ -99,7 +103,8 @@ def captions_command(
     data: Path = data_option("A motion-dataset with captions and splits."),
     split: str = typer.Option("test", "--split", help="The evaluated split."),
     train_split: str = typer.Option("train", "--train-split", help="The split whose captions count as seen."),
-    batch: int = typer.Option(32, "--batch", help="R-precision batch of the label-reader ceiling."),
+    batch: int = number_option(32, "--batch", help="R-precision batch of the label-reader ceiling.",
+                               within=f"{T2M}.batch"),
     as_json: bool = JsonOut,
 ):
     """Share of the split's captions that occur word for word in training, and the R-precision
@@ -117,8 +122,9 @@ def recon(
     motions: Optional[Path] = typer.Option(None, "--motions", help="A reconstruction artifact (clips named "
                                            "as in --data, e.g. from `tokenize decode`).", callback=existing),
     split: str = typer.Option("test", "--split", help="The split of --data to compare (train, val, test)."),
-    num_codebooks: Optional[int] = typer.Option(None, "--codebooks",
-                                                help="With --tokenizer: use only the first M codebooks."),
+    num_codebooks: Optional[int] = number_option(None, "--codebooks",
+                                                 help="With --tokenizer: use only the first M codebooks.",
+                                                 within=">= 1"),
     as_json: bool = JsonOut,
 ):
     """MPJPE (mm, root-relative and global) and acceleration error of a reconstruction."""
@@ -132,11 +138,12 @@ def recon(
 def physical(
     motion: Path = data_option("Any motion or motion-dataset artifact."),
     split: Optional[str] = typer.Option(None, "--split", help="Only this split (datasets)."),
-    contact_tolerance: Optional[float] = typer.Option(None, "--contact-tolerance",
-                                                      help="m: a toe this close to its resting height is in contact "
-                                                           "(default 0.01)."),
-    skate_speed: Optional[float] = typer.Option(None, "--skate-speed",
-                                                help="m/s: a faster contact step counts as skating (default 0.5)."),
+    contact_tolerance: Optional[float] = number_option(None, "--contact-tolerance",
+                                                       help="m: a toe this close to its resting height is in contact "
+                                                           "(default 0.01).", within="> 0"),
+    skate_speed: Optional[float] = number_option(None, "--skate-speed",
+                                                 help="m/s: a faster contact step counts as skating (default 0.5).",
+                                                 within="> 0"),
     as_json: bool = JsonOut,
 ):
     """Foot skating, ground penetration, floating and jitter of every clip (frame-weighted)."""
@@ -156,12 +163,12 @@ def motion_matching(
                                        "each (repeatable).", callback=existing),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only these clips of --data."),
     split: Optional[str] = typer.Option(None, "--split", help="Only this split of --data (train, val, test)."),
-    threshold: Optional[float] = typer.Option(None, "--threshold", help="Filter distance (default: derived from "
-                                              "--data, leave-one-clip-out)."),
-    percentile: float = typer.Option(95.0, "--percentile", help="Percentile of the dataset's leave-one-clip-out "
-                                     "distances that is the threshold."),
-    queries: int = typer.Option(20000, "--threshold-queries", help="Dataset transitions the threshold is "
-                                "derived from."),
+    threshold: Optional[float] = number_option(None, "--threshold", help="Filter distance (default: derived from "
+                                               "--data, leave-one-clip-out).", within="> 0"),
+    percentile: float = number_option(95.0, "--percentile", help="Percentile of the dataset's leave-one-clip-out "
+                                      "distances that is the threshold.", within="[0, 100]"),
+    queries: int = number_option(20000, "--threshold-queries", help="Dataset transitions the threshold is "
+                                 "derived from.", within=">= 1"),
     outs: list[Path] = output_option(help="Write the report: all of it to a .json, the table to a .md "
                                      "(repeatable).", suffixes=(".json", ".md"), required=False, default=[]),
     as_json: bool = JsonOut,
@@ -210,11 +217,12 @@ def labels_command(
                                 "phrasing-held-out split (comma-separated)."),
     prompt_split: str = typer.Option("test", "--prompt-split", help="Split whose captions make the train and "
                                      "heldout_wordings prompts (val to choose settings; never tune on test)."),
-    num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per prompt with --gpt."),
-    seed: int = typer.Option(0, "--seed", help="Sampling seed with --gpt."),
-    guidance: Optional[float] = typer.Option(None, "--guidance", help="CFG scale with --gpt (default: the run's)."),
-    snap: Optional[int] = typer.Option(None, "--snap", help="With --gpt: condition new sentences on their K nearest "
-                                       "training captions (0 = off; default: the run's)."),
+    num_samples: int = number_option(1, "-n", "--num-samples", help="Samples per prompt with --gpt.", within=">= 1"),
+    seed: int = number_option(0, "--seed", help="Sampling seed with --gpt.", within=">= 0"),
+    guidance: Optional[float] = number_option(None, "--guidance", help="CFG scale with --gpt (default: the run's).",
+                                              within=f"{GPT}.guidance"),
+    snap: Optional[int] = number_option(None, "--snap", help="With --gpt: condition new sentences on their K nearest "
+                                        "training captions (0 = off; default: the run's).", within=f"{GPT}.snap"),
     save_generated: Optional[Path] = output_option("--save-generated", help="Keep the --gpt samples (.h5).",
                                                    suffixes=H5, required=False),
     out: Optional[Path] = output_option(help="Write the report (.json).", suffixes=(".json",), required=False),

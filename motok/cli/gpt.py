@@ -8,10 +8,13 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, existing, fail, input_option, output_option,
-                              recipe_option, report, results, run)
+from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, existing, fail, input_option, number_option,
+                              output_option, recipe_option, report, results, run)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+GPT = "motok.gpt.model:TrainConfig"
 
 app = typer.Typer(help="Text to motion (T2M-GPT transformer over tokenizer codes): train, sample.",
                   no_args_is_help=True)
@@ -69,21 +72,22 @@ def sample(
                                    help="A sentence (repeatable); empty ones are refused."),
     texts_file: Optional[Path] = typer.Option(None, "--texts-file", help="One sentence per line (blank lines are "
                                               "skipped).", callback=existing),
-    num_samples: int = typer.Option(1, "-n", "--num-samples", help="Samples per text, >= 1."),
-    seed: int = typer.Option(0, "--seed", help="Sample j uses seed + j."),
-    temperature: float = typer.Option(1.0, "--temperature", help="Softmax temperature, > 0."),
-    top_k: Optional[int] = typer.Option(None, "--top-k", help="Keep the k most likely codes (1 to the codebook "
-                                        "size)."),
-    top_p: Optional[float] = typer.Option(None, "--top-p", help="Nucleus: keep the codes holding p of the mass, "
-                                          "p in (0, 1]."),
+    num_samples: int = number_option(1, "-n", "--num-samples", help="Samples per text, >= 1.", within=">= 1"),
+    seed: int = number_option(0, "--seed", help="Sample j uses seed + j.", within=">= 0"),
+    temperature: float = number_option(1.0, "--temperature", help="Softmax temperature, > 0.", within="> 0"),
+    top_k: Optional[int] = number_option(None, "--top-k", help="Keep the k most likely codes (1 to the codebook "
+                                         "size).", within=">= 1"),
+    top_p: Optional[float] = number_option(None, "--top-p", help="Nucleus: keep the codes holding p of the mass, "
+                                           "p in (0, 1].", within="(0, 1]"),
     argmax: bool = typer.Option(False, "--argmax", help="Greedy: the most likely code at each step."),
-    guidance: Optional[float] = typer.Option(None, "--guidance", help="Classifier-free guidance scale, >= 0 "
-                                             "(1 = off; default: the run's own, from its recipe). Needs a GPT "
-                                             "trained with caption_dropout."),
-    snap: Optional[int] = typer.Option(None, "--snap", help="Condition a sentence that is not a training caption "
-                                       "on its K nearest training captions (0 = off; default: the run's)."),
-    seconds: Optional[float] = typer.Option(None, "--seconds", help="Target length in seconds, > 0: End is masked "
-                                            "before it and forced at it."),
+    guidance: Optional[float] = number_option(None, "--guidance", help="Classifier-free guidance scale, >= 0 "
+                                              "(1 = off; default: the run's own, from its recipe). Needs a GPT "
+                                              "trained with caption_dropout.", within=f"{GPT}.guidance"),
+    snap: Optional[int] = number_option(None, "--snap", help="Condition a sentence that is not a training caption "
+                                        "on its K nearest training captions (0 = off; default: the run's).",
+                                        within=f"{GPT}.snap"),
+    seconds: Optional[float] = number_option(None, "--seconds", help="Target length in seconds, > 0: End is masked "
+                                             "before it and forced at it.", within="> 0"),
     out: Path = output_option(help="Output motion artifact (.h5).", suffixes=H5),
     render: Optional[Path] = output_option("--render", help="Also render each clip to this .gif, .mp4 or .png "
                                            "(numbered when there are several).", suffixes=RENDER_SUFFIXES,
@@ -100,12 +104,12 @@ def sample(
                                          "ghost and --bvh exports the simulated clips.", required=False),
     expert: Optional[Path] = input_option("--expert", help="Simulate as --prior does, tracked by this "
                                           "control-expert run instead of a prior.", required=False),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
-                                            "codebooks only (default: all)."),
+    codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
+                                             "codebooks only (default: all).", within=">= 1"),
     closed_loop: bool = typer.Option(False, "--closed-loop", help="With --prior: re-plan from the simulated "
                                      "character (the GPT continues the tokens of its last window) every "
                                      "--replan-every seconds; writes OUT.plans.h5 and OUT.closed-loop.json too."),
-    replan_every: Optional[float] = typer.Option(None, "--replan-every", metavar="SECONDS",
+    replan_every: Optional[float] = number_option(None, "--replan-every", metavar="SECONDS", within="> 0",
                                                  help="With --closed-loop: seconds between re-plans, a multiple of "
                                                  "the token duration (default 1)."),
     then: list[str] = typer.Option([], "--then", metavar='"TIME TEXT"',

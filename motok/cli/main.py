@@ -14,8 +14,8 @@ from typing import Optional
 import typer
 
 from motok import __version__, progress
-from motok.cli.common import (H5, DataRoot, JsonOut, Sets, choose_mujoco_gl, data_option, existing, output_option,
-                              print_json, recipe_option, report, results, run, wrote)
+from motok.cli.common import (DataRoot, H5, JsonOut, Sets, choose_mujoco_gl, data_option, existing, number_option,
+                              output_option, print_json, recipe_option, report, results, run, wrote)
 from motok.cli.control import app as control_app
 from motok.cli.conventions import MotokGroup, examples, renamed
 from motok.cli.eval import app as eval_app
@@ -23,6 +23,9 @@ from motok.cli.gpt import app as gpt_app
 from motok.cli.sim import app as sim_app
 from motok.cli.tokenize import app as tokenize_app
 from motok.cli.view import register as register_view
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+PRE = "motok.data.preprocess:PreprocessConfig"
 
 app = typer.Typer(help="motok: learned human motion, from mocap to tokens, text and physics.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False, cls=MotokGroup)
@@ -80,14 +83,16 @@ def preprocess(
                                         help="Only clips whose name matches, e.g. 'dataset-2_walk_*'."),
     skeleton: Optional[str] = typer.Option(None, "--skeleton", help="smpl22, bandai21 or a YAML path "
                                            "(default: detected from the joint names)."),
-    fps: Optional[float] = typer.Option(None, "--fps", help="Target frame rate, > 0 (default 20)."),
-    npy_fps: Optional[float] = typer.Option(None, "--npy-fps", help="Frame rate of .npy joint arrays, which store "
-                                            "none (default 20, HumanML3D's)."),
+    fps: Optional[float] = number_option(None, "--fps", help="Target frame rate, > 0 (default 20).",
+                                         within=f"{PRE}.fps"),
+    npy_fps: Optional[float] = number_option(None, "--npy-fps", help="Frame rate of .npy joint arrays, which store "
+                                             "none (default 20, HumanML3D's).", within=f"{PRE}.npy_fps"),
     legacy: bool = typer.Option(False, "--legacy", help="Reproduce the official HumanML3D quirks."),
     skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip bad inputs instead of stopping (each is "
                                   "listed, with why, in the summary and the provenance)."),
-    jobs: Optional[int] = typer.Option(None, "-j", "--jobs", help="Worker processes."),
-    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N clips (smoke runs)."),
+    jobs: Optional[int] = number_option(None, "-j", "--jobs", help="Worker processes.", within=f"{PRE}.jobs"),
+    limit: Optional[int] = number_option(None, "--limit", help="Only the first N clips (smoke runs).",
+                                         within=f"{PRE}.limit"),
     recipe: Optional[Path] = recipe_option("recipes/preprocess/"), sets: list[str] = Sets,
     data_root: Optional[Path] = DataRoot, as_json: bool = JsonOut,
 ):
@@ -115,7 +120,7 @@ def _skipped(skipped: list[dict]) -> str:
 @renamed(captions="--max-captions")
 def info(path: Path = typer.Argument(..., help="Any motok artifact (.h5) or checkpoint folder.", callback=existing),
          as_json: bool = JsonOut,
-         captions: int = typer.Option(3, "--max-captions", help="How many captions to show.")):
+         captions: int = number_option(3, "--max-captions", help="How many captions to show.", within=">= 0")):
     """Print what a file holds: kind, version, provenance; datasets, splits and captions of an
     artifact; config, references and tensors (shapes, parameters, verified hash) of a bundle."""
     from motok.info import describe, print_description
@@ -133,7 +138,7 @@ def info(path: Path = typer.Argument(..., help="Any motok artifact (.h5) or chec
 def render(
     data: Path = MotionData, clip: str = ClipName,
     out: Path = output_option(help="Output .gif, .mp4 or .png (a contact sheet).", suffixes=(".gif", ".mp4", ".png")),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Only the first N frames."),
+    max_frames: Optional[int] = number_option(None, "--max-frames", help="Only the first N frames.", within=">= 1"),
     as_json: bool = JsonOut,
 ):
     """Render a clip as a 3D stick figure with floor grid, root trajectory and caption."""
@@ -191,7 +196,8 @@ def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its met
          keys: Optional[str] = typer.Option(None, "--keys", help="Comma-separated metrics (default: all)."),
          x: str = typer.Option("iteration", "--x", help="Field on the x axis, e.g. samples."),
          x2: Optional[str] = typer.Option(None, "--x2", help="Second x axis on top, e.g. wall_s."),
-         smooth: float = typer.Option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve."),
+         smooth: float = number_option(0.0, "--smooth", help="EMA weight in [0, 1) for a smoothed curve.",
+                                       within="[0, 1)"),
          log: Optional[str] = typer.Option(None, "--log", help="Comma-separated metrics drawn on a log y axis "
                                            "(losses, errors)."),
          missing_ok: bool = typer.Option(False, "--missing-ok", help="Leave out, with a warning, --keys that no "

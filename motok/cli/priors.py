@@ -11,12 +11,15 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, Device, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
-                              output_option, recipe_option, report, results, run, valid_device)
+from motok.cli.common import (Device, H5, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
+                              number_option, output_option, recipe_option, report, results, run, valid_device)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 from motok.control.priors.kinds import KINDS
 from motok.control.tasks import registry
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+TRACKING = "motok.control.tasks.imitation:ImitationTaskConfig"
 
 PRIORS = " | ".join(KINDS)
 EVAL_TASKS = (registry.IMITATION, *registry.names())  # a prior on imitation, or a task policy on its task
@@ -34,17 +37,17 @@ def distill_cmd(
                                         "clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
     resume: bool = Resume, force: bool = Force,
-    until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (the weight schedules "
-                                        "still span the recipe's iterations; --resume continues)."),
+    until: Optional[int] = number_option(None, "--until", help="Stop after this iteration (the weight schedules "
+                                         "still span the recipe's iterations; --resume continues).", within=">= 1"),
     device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """Distil the expert into a latent prior: the student acts, the expert labels (DAgger), Eq. 6."""
-    from motok.config import load_config
     from motok.control.priors.distill import train_from_expert
-    from motok.control.priors.model import DistillConfig
+    from motok.control.priors.model import KIND, DistillConfig
+    from motok.resume import resolve_config
 
-    cfg = run(load_config, DistillConfig, recipe, device_sets(device) + sets)
+    cfg = run(resolve_config, DistillConfig, recipe, device_sets(device) + sets, out, KIND, resume)
     summary = train_into(out, lambda where: train_from_expert(cfg, expert, where, prior=prior, data=data,
                                            clips=clips, split=split, resume=resume, until=until),
                          resume=resume, force=force)
@@ -59,19 +62,21 @@ def eval_cmd(
                              f"policy's task: {' | '.join(registry.names())} (--policy)."),
     run_dir: Optional[Path] = input_option("--policy", help="A task policy: a control-task run folder (from "
                                            "`control train`).", required=False),
-    episodes: int = typer.Option(256, "-n", "--num-samples", help="Task policies: episodes to evaluate."),
-    seed: int = typer.Option(0, "--seed", help="Task policies: seed of the start states and targets."),
+    episodes: int = number_option(256, "-n", "--num-samples", help="Task policies: episodes to evaluate.",
+                                  within=">= 1"),
+    seed: int = number_option(0, "--seed", help="Task policies: seed of the start states and targets.", within=">= 0"),
     data: Optional[Path] = data_option("Dataset (default: the one it was distilled on).", required=False),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
                                         "distillation clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test)."),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="Decode with the first M codebooks only "
-                                            "(residual priors; default: all)."),
+    codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="Decode with the first M codebooks only "
+                                             "(residual priors; default: all).", within=">= 1"),
     render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
                                            suffixes=(".mp4", ".gif"), required=False),
     termination: Optional[str] = typer.Option(None, "--termination",
                                               help="Failure test: 'any' body or the 'mean' (default: the prior's)."),
-    distance: Optional[float] = typer.Option(None, "--distance", help="Failure distance in m (default: the prior's)."),
+    distance: Optional[float] = number_option(None, "--distance", help="Failure distance in m (default: the prior's).",
+                                              within=f"{TRACKING}.termination_distance"),
     device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
@@ -114,13 +119,13 @@ def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render,
 def generate_cmd(
     prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`)."),
     out: Path = output_option(help="The generated motion (.h5, a motion artifact).", suffixes=H5),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="Sample codes from the first M codebooks "
-                                            "(default: all; 0: hybrid's prior z_p alone; not for the continuous "
-                                            "prior)."),
-    seconds: float = typer.Option(30.0, "--seconds", help="Length of each sample in seconds (a fall ends it "
-                                  "sooner)."),
-    num: int = typer.Option(10, "-n", "--num-samples", help="Number of samples."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the start states and of the code draws."),
+    codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="Sample codes from the first M codebooks "
+                                             "(default: all; 0: hybrid's prior z_p alone; not for the continuous "
+                                             "prior).", within=">= 0"),
+    seconds: float = number_option(30.0, "--seconds", help="Length of each sample in seconds (a fall ends it "
+                                   "sooner).", within="> 0"),
+    num: int = number_option(10, "-n", "--num-samples", help="Number of samples.", within=">= 1"),
+    seed: int = number_option(0, "--seed", help="Seed of the start states and of the code draws.", within=">= 0"),
     data: Optional[Path] = data_option("Dataset of the start states (default: the one it was distilled on).",
                                        required=False),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Start from these clips (default: "

@@ -10,8 +10,12 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import data_option, existing, fail, output_option, print_json, report, run, wrote
+from motok.cli.common import data_option, existing, fail, number_option, output_option, print_json, report, run, wrote
 from motok.cli.conventions import examples, renamed
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+HUMANOID = "motok.sim.humanoid:HumanoidConfig"
+SIM = "motok.sim.env:SimConfig"
 
 app = typer.Typer(help="Physics: the MuJoCo humanoid built from a dataset's skeleton, and its reference motions.",
                   no_args_is_help=True)
@@ -20,7 +24,7 @@ VIDEO = (".mp4", ".gif")
 Data = data_option("A motion-dataset artifact (.h5).")
 HumanoidOpt = typer.Option(None, "--humanoid", help="Humanoid MJCF (default: built from --data once and cached).",
                            callback=existing)
-Hz = typer.Option(None, "--hz", help="Control rate in Hz (default: the humanoid's, 30).")
+Hz = number_option(None, "--hz", help="Control rate in Hz (default: the humanoid's, 30).", within=f"{SIM}.control_hz")
 Sets = typer.Option([], "--set", metavar="KEY=VALUE", help="Override a HumanoidConfig key (repeatable).")
 Stick = typer.Option(False, "--stick", help="Draw the stick figure instead of MuJoCo's renderer.")
 JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
@@ -44,8 +48,10 @@ def _setup(data: Path, humanoid: Optional[Path], hz: Optional[float], clips):
 def build_humanoid_cmd(
     data: Path = Data,
     out: Path = output_option(help="Output MJCF (.xml).", suffixes=(".xml",)),
-    mass: Optional[float] = typer.Option(None, "--total-mass", help="Total mass in kg (default 65)."),
-    timestep: Optional[float] = typer.Option(None, "--timestep", help="Physics timestep in s (default 1/120)."),
+    mass: Optional[float] = number_option(None, "--total-mass", help="Total mass in kg (default 65).",
+                                          within=f"{HUMANOID}.total_mass"),
+    timestep: Optional[float] = number_option(None, "--timestep", help="Physics timestep in s (default 1/120).",
+                                              within=f"{HUMANOID}.timestep"),
     sets: list[str] = Sets,
     as_json: bool = JsonOut,
 ):
@@ -68,7 +74,7 @@ def replay(
     out: Path = output_option(help="Output .mp4 or .gif.", suffixes=VIDEO),
     humanoid: Optional[Path] = HumanoidOpt,
     hz: Optional[float] = Hz,
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Only the first N frames."),
+    max_frames: Optional[int] = number_option(None, "--max-frames", help="Only the first N frames.", within=">= 1"),
     stick: bool = Stick,
     as_json: bool = JsonOut,
 ):
@@ -98,8 +104,8 @@ def pd_track_cmd(
                                            "(.mp4/.gif); one clip only.", suffixes=VIDEO, required=False),
     humanoid: Optional[Path] = HumanoidOpt,
     hz: Optional[float] = Hz,
-    seconds: Optional[float] = typer.Option(None, "--seconds", help="Track at most this long, > 0 (default: whole "
-                                            "clip)."),
+    seconds: Optional[float] = number_option(None, "--seconds", help="Track at most this long, > 0 (default: whole "
+                                             "clip).", within="> 0"),
     stick: bool = Stick,
     as_json: bool = JsonOut,
 ):

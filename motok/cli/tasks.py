@@ -10,11 +10,15 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, output_option,
-                              recipe_option, report, run)
+from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, number_option,
+                              output_option, recipe_option, report, run)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 from motok.control.tasks import registry
+
+# Config classes whose fields' ranges the options below share (motok.ranges.range_of).
+PERTURB = "motok.control.highlevel.perturb:PerturbConfig"
+TASK = "motok.control.highlevel.policy:TaskTrainConfig"
 
 TASK_NAMES = " | ".join(registry.names())
 
@@ -22,8 +26,9 @@ TASK_NAMES = " | ".join(registry.names())
 def train_cmd(
     task: Optional[str] = typer.Option(None, "--task", help=f"The task: {TASK_NAMES} (default: the recipe's)."),
     prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`), kept frozen."),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="Choose codes in the first M codebooks "
-                                            "(residual priors; default: the recipe's, else all)."),
+    codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="Choose codes in the first M codebooks "
+                                             "(residual priors; default: the recipe's, else all).",
+                                             within=f"{TASK}.codebooks"),
     out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/control/task_*.yaml"),
     sets: list[str] = Sets,
@@ -33,30 +38,34 @@ def train_cmd(
                                         "prior's clips)."),
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
     resume: bool = Resume, force: bool = Force,
-    until: Optional[int] = typer.Option(None, "--until", help="Stop after this iteration (--resume continues)."),
+    until: Optional[int] = number_option(None, "--until", help="Stop after this iteration (--resume continues).",
+                                         within=">= 1"),
     device: Optional[str] = Device,
     as_json: bool = JsonOut,
 ):
     """PPO over the prior's latent space: the policy picks codes (or an offset from the prior's mean)."""
-    from motok.config import load_config
-    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.policy import KIND, TaskTrainConfig
     from motok.control.highlevel.train import train_from_prior
+    from motok.resume import resolve_config
 
-    cfg = run(load_config, TaskTrainConfig, recipe, device_sets(device) + sets)
-    summary = train_into(out, lambda where: train_from_prior(cfg, prior, where, task=task, codebooks=codebooks,
-                                           data=data, clips=clips, split=split, resume=resume, until=until),
+    # --task and --codebooks are settings like any other: on resume they are compared with the run's
+    flags = [f"task={task}"] * (task is not None) + [f"codebooks={codebooks}"] * (codebooks is not None)
+    cfg = run(resolve_config, TaskTrainConfig, recipe, device_sets(device) + sets + flags, out, KIND, resume)
+    summary = train_into(out, lambda where: train_from_prior(cfg, prior, where, data=data, clips=clips, split=split,
+                                           resume=resume, until=until),
                          resume=resume, force=force)
-    report(summary, as_json, f"control train {cfg.task if task is None else task}")
+    report(summary, as_json, f"control train {cfg.task}")
 
 
 @renamed(run="--policy")
 def perturb_cmd(
     run_dir: Path = input_option("--policy", help="A task policy: a control-task run folder (from `control train`), "
                                  "e.g. navigation."),
-    episodes: int = typer.Option(64, "-n", "--num-samples", help="Episodes to run under fire."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the throws and of the task's starts and targets."),
-    period: float = typer.Option(0.3, "--period", help="Seconds between throws (the paper's 0.3; another "
-                                 "period is written to RUN/perturb_periodP.json)."),
+    episodes: int = number_option(64, "-n", "--num-samples", help="Episodes to run under fire.", within=">= 1"),
+    seed: int = number_option(0, "--seed", help="Seed of the throws and of the task's starts and targets.",
+                              within=">= 0"),
+    period: float = number_option(0.3, "--period", help="Seconds between throws (the paper's 0.3; another "
+                                  "period is written to RUN/perturb_periodP.json).", within=f"{PERTURB}.period"),
     render: Optional[Path] = output_option("--render", help="Video of the first episode with the balls "
                                            "(.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
     as_json: bool = JsonOut,

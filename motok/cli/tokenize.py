@@ -8,14 +8,16 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import H5, JsonOut, Resume, Sets, data_option, output_option, recipe_option, report, results, run
+from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, number_option, output_option, recipe_option,
+                              report, results, run)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 
 app = typer.Typer(help="Motion tokenizer (T2M-GPT VQ-VAE): train, encode, decode, eval.", no_args_is_help=True)
 
 Tokenizer = typer.Option(..., "--tokenizer", "-t", help="A tokenizer run folder (from `tokenize train`).")
-NumCodebooks = typer.Option(None, "--codebooks", "-m", help="Use only the first M codebooks (residual VQ).")
+NumCodebooks = number_option(None, "--codebooks", "-m", help="Use only the first M codebooks (residual VQ).",
+                             within=">= 1")
 Split = typer.Option("test", "--split", help="The split of --data to evaluate (train, val, test).")
 
 

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, data_option, input_option, output_option, report, results, run
+from motok.cli.common import JsonOut, data_option, input_option, number_option, output_option, report, results, run
 from motok.cli.conventions import examples
 
 
@@ -19,8 +19,8 @@ def track_cmd(
                                           required=False),
     prior: Optional[Path] = input_option("--prior", help="The controller: a distilled prior (its posterior and "
                                          "decoder), instead of --expert.", required=False),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
-                                            "codebooks only (default: all)."),
+    codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
+                                             "codebooks only (default: all).", within=">= 1"),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),
     split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test), "

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, fail, input_option, report, run
+from motok.cli.common import JsonOut, fail, input_option, number_option, report, run
 from motok.cli.conventions import examples
 
 
@@ -20,16 +20,16 @@ def view_cmd(
                                           "the physics, the reference as a ghost.", required=False),
     prior: Optional[Path] = input_option("--prior", help="A distilled prior (its posterior and decoder) tracking "
                                          "each clip, instead of --expert.", required=False),
-    codebooks: Optional[int] = typer.Option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
-                                            "codebooks only (default: all)."),
+    codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
+                                             "codebooks only (default: all).", within=">= 1"),
     clip: Optional[str] = typer.Option(None, "--clip", help="The clip to start with (name or index; default: the "
                                        "first)."),
     clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only the clips whose name matches "
                                         "(N and P step through them)."),
     humanoid: Optional[Path] = input_option("--humanoid", help="MJCF for a motion file (default: built from --data "
                                             "once and cached, as motok sim does).", required=False),
-    seconds: Optional[float] = typer.Option(None, "--seconds", help="Close the window after this many seconds, > 0 "
-                                            "(scripted smoke tests; default: when you close it)."),
+    seconds: Optional[float] = number_option(None, "--seconds", help="Close the window after this many seconds "
+                                             "(scripted smoke tests; default: when you close it).", within="> 0"),
     as_json: bool = JsonOut,
 ):
     """Watch motion live in MuJoCo's viewer: a motion file's clips, or a controller tracking them."""
@@ -41,8 +41,6 @@ def view_cmd(
         fail("--codebooks decodes a prior: pass --prior PRIOR")
     if humanoid is not None and (expert or prior):
         fail("--humanoid is for a motion file: a control run brings its own humanoid")
-    if seconds is not None and not seconds > 0:
-        fail(f"--seconds {seconds} must be > 0")
 
     def go():
         from motok.view.sources import ControlSource, MotionSource

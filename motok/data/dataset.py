@@ -106,6 +106,10 @@ def clip_index(names: list[str], clip, positions: dict[str, int] | None = None, 
     return names.index(clip) if positions is None else positions[clip]
 
 
+class NonFiniteMotionError(UserError):
+    """A motion artifact whose frames hold NaN or infinite numbers."""
+
+
 class MotionFile:
     """Read access to a motion or motion-dataset artifact; clips load lazily by name or index."""
 
@@ -144,9 +148,22 @@ class MotionFile:
         return clip_index(self.names, name_or_index, positions=self._index, where=f"{self.path}: ")
 
     def frames(self, key: str, clip) -> np.ndarray:
+        """The rows ``key`` (features, joints, ...) of one clip, refused if any is NaN or inf."""
         i = self.index(clip)
         a, b = self.frame_offsets[i], self.frame_offsets[i + 1]
-        return self.h5["frames"][key][a:b]
+        return self.check_finite(key, self.h5["frames"][key][a:b], i)
+
+    def check_finite(self, key: str, rows: np.ndarray, clip: int) -> np.ndarray:
+        """``rows`` (clip ``clip``'s ``key``, read in bulk) if every number is finite, else an error
+        naming the clip and its first bad frame. Motion with a NaN or inf in it is never consumed:
+        an SVD on it fails deep inside the tracker, a distance to it is infinite, a metric on it
+        equals whatever the NaN-skipping reduction left (a real clip's), all without a word."""
+        finite = np.isfinite(rows)
+        if finite.all():  # the common case costs one vectorised pass
+            return rows
+        bad = int(np.flatnonzero(~finite.reshape(len(rows), -1).all(1))[0])
+        raise NonFiniteMotionError(f"{self.path}: clip {self.names[clip]!r} frame {bad}: {key} holds NaN or inf "
+                                   f"(motion with non-finite numbers cannot be tracked or measured)")
 
     def captions(self, clip, tokens: bool = False) -> list[tuple]:
         """``[(text, start, end)]`` of a clip; with ``tokens``, ``[(text, tokens, start, end)]``

@@ -31,6 +31,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from motok import ranges
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import check_writable
 from motok.data.annotations import Annotations
@@ -42,6 +43,7 @@ from motok.errors import MissingFileError, UnknownNameError, UserError
 from motok.features.humanml3d import (extract_features, mean_std, resample_positions, resample_quats,
                                       skeleton_offsets)
 from motok.progress import info, make_progress
+from motok.ranges import In
 from motok.skeleton import Skeleton, SkeletonError, detect_skeleton, load_skeleton
 from motok.workers import die_with_parent
 
@@ -56,17 +58,17 @@ class PreprocessConfig:
     annotations: str | None = "auto"
     clips: str = "*"  # clip-name glob; also decides which split entries must be present
     skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
-    fps: float = 20.0
+    fps: In[float, "> 0"] = 20.0
     # The frame rate of .npy joint arrays, which store none (HumanML3D's new_joints are 20 fps);
     # they are resampled from it to ``fps``. A note says which rate was assumed.
-    npy_fps: float = 20.0
-    scale: float | None = None  # source units to metres; None: guess from the leg length
+    npy_fps: In[float, "> 0"] = 20.0
+    scale: In[float | None, "> 0"] = None  # source units to metres; None: guess from the leg length
     legacy: bool = False
     reference_clip: str | None = None  # target bone lengths; None: first train clip by name
     skip_bad: bool = False
-    jobs: int = 1
-    limit: int | None = None  # keep the first N matching clips (smoke runs); skips the split check
-    min_frames: int = 4  # at the target fps, after resampling
+    jobs: In[int, ">= 1"] = 1
+    limit: In[int | None, ">= 1"] = None  # keep the first N matching clips (smoke runs); skips the split check
+    min_frames: In[int, ">= 2"] = 4  # at the target fps, after resampling (features are frame differences)
 
 
 @dataclass
@@ -81,19 +83,7 @@ class _Loaded:
 
 def check_config(cfg: PreprocessConfig) -> PreprocessConfig:
     """Refuse values that would fail late or mean nothing, before any input is read."""
-    problems = []
-    for key in ("fps", "npy_fps"):
-        v = getattr(cfg, key)
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            problems.append(f"{key} {v} must be a positive number of frames per second")
-    if cfg.scale is not None and not (math.isfinite(cfg.scale) and cfg.scale > 0):
-        problems.append(f"scale {cfg.scale} must be > 0")
-    if cfg.jobs < 1:
-        problems.append(f"jobs {cfg.jobs} must be >= 1")
-    if cfg.limit is not None and cfg.limit < 1:
-        problems.append(f"limit {cfg.limit} must be >= 1")
-    if cfg.min_frames < 2:
-        problems.append(f"min_frames {cfg.min_frames} must be >= 2 (features are frame differences)")
+    problems = ranges.check_config(cfg)  # a config made in code, not by load_config, is checked too
     if not cfg.data:
         problems.append("no data (-d/--data: mocap files, folders or archives)")
     if problems:

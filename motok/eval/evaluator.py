@@ -38,6 +38,7 @@ from motok.config import ConfigError, from_dict, load_config, to_dict
 from motok.data.dataset import MotionFile
 from motok.errors import MotokError
 from motok.features.humanml3d import NUM_CONTACTS
+from motok.ranges import In
 
 KIND = "evaluator"
 register_kind(KIND, (1,))
@@ -49,27 +50,28 @@ class EvaluatorConfig:
     # any name motok.text.encoders knows: bow | minilm | clip. bow: no pretrained weights, so
     # the evaluator's text side shares nothing with a GPT on minilm or clip (docs/eval.md).
     text_encoder: str = "bow"
-    embed_dim: int = 128
-    width: int = 128
-    layers: int = 2
-    heads: int = 4
-    dropout: float = 0.1
-    temperature: float = 0.1
+    embed_dim: In[int, ">= 1"] = 128
+    width: In[int, ">= 1"] = 128
+    layers: In[int, ">= 1"] = 2
+    heads: In[int, ">= 1"] = 4
+    dropout: In[float, "[0, 1)"] = 0.1
+    temperature: In[float, "> 0"] = 0.1
     # Which shared attributes make an in-batch pair no negative: caption text, label set.
     filter_negatives: list[str] = field(default_factory=lambda: ["caption", "label"])
-    iterations: int = 2000
-    batch_size: int = 64
-    lr: float = 3e-4
-    weight_decay: float = 0.01
-    warmup: int = 100
-    min_frames: int = 16  # shortest random crop
-    max_frames: int = 160  # longest training crop (bounds padding; Guo uses 196)
-    crop_min_fraction: float = 0.7  # a crop keeps at least this share of the clip, so it still matches the caption
+    iterations: In[int, ">= 1"] = 2000
+    batch_size: In[int, ">= 1"] = 64
+    lr: In[float, "> 0"] = 3e-4
+    weight_decay: In[float, ">= 0"] = 0.01
+    warmup: In[int, ">= 0"] = 100
+    min_frames: In[int, ">= 1"] = 16  # shortest random crop
+    max_frames: In[int, ">= 1"] = 160  # longest training crop (bounds padding; Guo uses 196)
+    # a crop keeps at least this share of the clip, so it still matches the caption
+    crop_min_fraction: In[float, "(0, 1]"] = 0.7
     split: str = "train"
     report_split: str = "test"  # retrieval reported on this split after training
-    seed: int = 0
-    log_every: int = 50
-    threads: int = 1  # torch threads; on a shared 2-core machine one thread ran 5x faster than two
+    seed: In[int, ">= 0"] = 0
+    log_every: In[int, ">= 1"] = 50
+    threads: In[int, ">= 0"] = 1  # torch threads; on a shared 2-core machine one thread ran 5x faster than two
 
 
 class EvaluatorError(MotokError, ValueError):
@@ -187,10 +189,8 @@ def load_split(mf: MotionFile, split: str | None) -> SplitData:
     for c, t in zip(cap_clip, texts):
         by_clip.setdefault(int(c), []).append(t)
     labels = read_strings(mf.h5["clips/labels"])
-    feats = mf.h5["frames/features"]
-    off = mf.frame_offsets
     keep = [i for i in which if by_clip.get(i)]
-    return SplitData([feats[off[i]:off[i + 1]] for i in keep], [by_clip[i] for i in keep],
+    return SplitData([mf.frames("features", i) for i in keep], [by_clip[i] for i in keep],
                      ["" if labels[i] in ("{}", "") else labels[i] for i in keep], [mf.names[i] for i in keep])
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from motok.data.dataset import MotionFile
 from motok.errors import MotokError
+from motok.ranges import In
 
 LABELS = ("content", "style")
 
@@ -43,12 +44,12 @@ class LabelsError(MotokError, ValueError):
 class LabelsConfig:
     split: str = "train"  # real motion the classifier is fitted on
     test_split: str = "test"  # real motion it reports its own accuracy on
-    segments: int = 3  # temporal parts whose means join the whole-clip mean and std
-    crops: int = 4  # extra random crops (60-100 % of the clip) per training clip
-    weight_decay: float = 1e-2  # L2 penalty on the weights (mean over samples + wd/2 |W|^2)
-    max_iter: int = 200  # L-BFGS iterations
-    seed: int = 0
-    threads: int = 1
+    segments: In[int, ">= 1"] = 3  # temporal parts whose means join the whole-clip mean and std
+    crops: In[int, ">= 0"] = 4  # extra random crops (60-100 % of the clip) per training clip
+    weight_decay: In[float, ">= 0"] = 1e-2  # L2 penalty on the weights (mean over samples + wd/2 |W|^2)
+    max_iter: In[int, ">= 1"] = 200  # L-BFGS iterations
+    seed: In[int, ">= 0"] = 0
+    threads: In[int, ">= 0"] = 1
 
 
 def check_config(cfg: LabelsConfig) -> None:
@@ -79,8 +80,7 @@ def _read(mf: MotionFile, which: list[int]) -> tuple[list[np.ndarray], list[dict
     from motok.artifacts import read_strings
 
     labels = read_strings(mf.h5["clips/labels"])
-    feats, off = mf.h5["frames/features"], mf.frame_offsets
-    return [feats[off[i]:off[i + 1]] for i in which], [_labels_of(labels[i]) for i in which]
+    return [mf.frames("features", i) for i in which], [_labels_of(labels[i]) for i in which]
 
 
 @dataclass

@@ -22,21 +22,22 @@ from motok.eval.evaluator import UNIT, EvaluatorError, LoadedEvaluator
 from motok.eval.physical import PhysicalSums, clip_sums
 from motok.eval.sets import MotionSet
 from motok.features.humanml3d import recover_from_ric
+from motok.ranges import In
 
 
 @dataclass
 class T2MConfig:
     split: str = "test"
-    repeats: int = 20
-    batch: int = 32  # R-precision batch: 1 true caption and 31 others
-    top_k: int = 3
-    diversity_times: int = 300
-    mm_pairs: int = 10  # MModality pairs per caption (reference: 10 of 30 samples)
+    repeats: In[int, ">= 1"] = 20
+    batch: In[int, ">= 1"] = 32  # R-precision batch: 1 true caption and 31 others
+    top_k: In[int, ">= 1"] = 3
+    diversity_times: In[int, ">= 1"] = 300
+    mm_pairs: In[int, ">= 1"] = 10  # MModality pairs per caption (reference: 10 of 30 samples)
     # MModality's captions drawn with replacement in each repeat: samples are generated once, not
     # per repeat as the reference does, so the CI must carry the spread between captions.
     mm_resample: bool = True
     unit_crop: bool = True  # the reference loader's crop to a multiple of 4 frames
-    seed: int = 0
+    seed: In[int, ">= 0"] = 0
     physical: bool = True
     # "unseen": only the split's captions that do not occur word for word in train_split
     # (motok.eval.captions); clips without one are left out of every row and of the reference.
@@ -49,15 +50,15 @@ class T2MConfig:
     tracked_to_end: bool = False
     # Generation with --gpt: sets of one sample per clip (the protocol regenerates every repeat:
     # gen_sets = repeats; fewer sets are reused in turn) and the MModality samples.
-    gen_sets: int = 20
+    gen_sets: In[int, ">= 1"] = 20
     gt_length: bool = False  # target the ground-truth length instead of stopping at End
-    mm_captions: int = 100
-    mm_samples: int = 30
-    temperature: float = 1.0
-    top_k_sampling: int | None = None
-    top_p: float | None = None
-    gen_batch: int = 64
-    threads: int = 1  # torch threads (one is fastest on a shared 2-core machine)
+    mm_captions: In[int, ">= 1"] = 100
+    mm_samples: In[int, ">= 1"] = 30
+    temperature: In[float, "> 0"] = 1.0
+    top_k_sampling: In[int | None, ">= 1"] = None
+    top_p: In[float | None, "(0, 1]"] = None
+    gen_batch: In[int, ">= 1"] = 64
+    threads: In[int, ">= 0"] = 1  # torch threads (one is fastest on a shared 2-core machine)
 
 
 def unit_crop(n: int, rng: np.random.Generator) -> tuple[int, int]:

@@ -101,7 +101,7 @@ def load_set(path, names: list[str] | None = None, fps: float | None = None, ske
         acc, acc_n, frames = 0.0, 0, 0
         feet = (tuple(sk.feet_left), tuple(sk.feet_right))
         for i in ids:
-            j = every[off[i]:off[i + 1]] if every is not None else mf.frames("joints", i)
+            j = mf.check_finite("joints", every[off[i]:off[i + 1]], i) if every is not None else mf.frames("joints", i)
             phys.add(clip_sums(j, own, feet))
             a, n = acceleration_sum(j, own)
             acc, acc_n, frames = acc + a, acc_n + n, frames + len(j)

@@ -42,20 +42,21 @@ import torch.nn.functional as F
 from motok.checkpoint import load_bundle, register_kind
 from motok.config import ConfigError, from_dict
 from motok.optim import OptimConfig
+from motok.ranges import In
 
 
 @dataclass
 class GPTConfig:
     """Sizes; the default is a small CPU model. ``recipes/gpt/paper.yaml`` has 18 x 1024 x 16."""
-    num_layers: int = 4
-    dim: int = 192
-    heads: int = 4
-    block_size: int = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
-    ff_mult: int = 4
-    dropout: float = 0.1
+    num_layers: In[int, ">= 1"] = 4
+    dim: In[int, ">= 1"] = 192
+    heads: In[int, ">= 1"] = 4
+    block_size: In[int, ">= 2"] = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
+    ff_mult: In[int, ">= 1"] = 4
+    dropout: In[float, "[0, 1)"] = 0.1
     # Token-level conditioning: 0 = one pooled sentence vector at position 0 (the paper);
     # P > 0 = the encoder's P per-token outputs as a prefix of P positions (a ``*_tokens`` encoder).
-    text_tokens: int = 0
+    text_tokens: In[int, ">= 0"] = 0
 
 
 class KVCache:
@@ -218,28 +219,35 @@ class TrainConfig:
                                                                    warmup=0))
     text_encoder: str = "minilm"  # minilm | clip | bow
     text_cache: str = ""  # text-embeddings artifact; "" = next to the tokens artifact
-    tau: float = 0.5  # fraction of input codes replaced by random codes
+    tau: In[float, "[0, 1]"] = 0.5  # fraction of input codes replaced by random codes
     tau_uniform: bool = False  # draw tau ~ U[0, 1] per sequence instead
     # holdout "v1": captions in the held-out wordings of motok.text.phrasings never train.
     holdout: str = ""
     # Caption augmentation (motok.gpt.augment), all off by default:
-    recombine: int = 0  # new captions per group of clips, recombined from the captions' own phrases
-    word_dropout: float = 0.0  # probability of dropping a word, in word_dropout_variants copies per caption
-    word_dropout_variants: int = 0
-    text_noise: float = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
-    caption_dropout: float = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
-    guidance: float = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
-    snap: int = 0  # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
-    iterations: int = 2000
-    batch_size: int = 64  # global: split evenly over the ranks
+    recombine: In[int, ">= 0"] = 0  # new captions per group of clips, recombined from the captions' own phrases
+    # probability of dropping a word, in word_dropout_variants copies per caption
+    word_dropout: In[float, "[0, 1)"] = 0.0
+    word_dropout_variants: In[int, ">= 0"] = 0
+    text_noise: In[float, ">= 0"] = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
+    caption_dropout: In[float, "[0, 1)"] = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
+    guidance: In[float, ">= 0"] = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
+    # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
+    snap: In[int, ">= 0"] = 0
+    iterations: In[int, ">= 1"] = 2000
+    batch_size: In[int, ">= 1"] = 64  # global: split evenly over the ranks
     split: str = "train"
     val_split: str = "val"  # "" = no validation loss
-    seed: int = 123
-    log_every: int = 50
-    eval_every: int = 250
-    save_every: int = 500
+    seed: In[int, ">= 0"] = 123
+    log_every: In[int, ">= 1"] = 50
+    eval_every: In[int, ">= 1"] = 250
+    save_every: In[int, ">= 1"] = 500
     device: str = "auto"  # auto | cpu | cuda
-    threads: int = 0  # torch intra-op threads; 0 = torch's default
+    threads: In[int, ">= 0"] = 0  # torch intra-op threads; 0 = torch's default
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length (the schedule's milestones
+        are absolute iterations) and how often it logs, evaluates and saves, none of which changes a step."""
+        return {"iterations", "log_every", "eval_every", "save_every"}
 
 
 def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> MotionGPT:

@@ -33,10 +33,11 @@ import torch.nn.functional as F
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
 from motok.checkpoint import MetricsLog, load_bundle, resolve_ref
-from motok.config import ConfigError, load_config, to_dict
+from motok.config import ConfigError
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
 from motok.optim import lr_factor
+from motok.resume import resolve_config as resume_config
 from motok.gpt.augment import noisy
 from motok.gpt.data import (HOLDOUTS, IGNORE, CodeData, GPTError, SequenceSampler, corrupt,  # noqa: F401
                              default_cache_path, load_code_data, make_batch)
@@ -82,19 +83,9 @@ def check_augmentation(cfg: TrainConfig) -> None:
 
 
 def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: bool = False) -> TrainConfig:
-    """Recipe + overrides; on resume the saved config is the base and the model cannot change."""
-    if not resume:
-        return load_config(TrainConfig, recipe, overrides)
-    meta, _, _ = load_bundle(run, KIND)
-    saved = meta["config"]
-    cfg = load_config(TrainConfig, None, overrides, base=saved)
-    if recipe is not None and to_dict(load_config(TrainConfig, recipe, overrides))["model"] != saved["model"]:
-        raise ConfigError(f"--resume: the recipe changes the model of the saved run {run}")
-    for k in ("model", "batch_size", "seed", "text_encoder", "holdout", "recombine", "word_dropout",
-              "word_dropout_variants", "caption_dropout"):
-        if to_dict(cfg)[k] != saved[k]:
-            raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
-    return cfg
+    """Recipe + overrides; on resume the saved config, which they may not change beyond what
+    ``TrainConfig.resume_may_change`` allows (motok.resume)."""
+    return resume_config(TrainConfig, recipe, overrides, run, KIND, resume)
 
 
 @torch.no_grad()

@@ -42,27 +42,30 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from motok.ranges import In
+
 
 @dataclass
 class QuantizerConfig:
     kind: str = "ema_reset"        # one of motok.quantize.registry.KINDS
-    codebook_size: int = 512       # ignored by fsq, whose codebook has prod(fsq_levels) codes
-    dim: int = 512                 # code dimension
-    beta: float = 1.0              # commitment weight, for the trainer: losses["commit"] is unweighted
-    decay: float = 0.99            # EMA decay
-    eps: float = 1e-5              # Laplace smoothing of EMA counts
-    reset_threshold: float = 1.0   # a code is dead if its (EMA or windowed) usage count < threshold
-    reset_window: int = 1          # training steps between dead-code checks (1 = every step, as T2M-GPT)
-    num_codebooks: int = 1         # rvq: number of residual codebooks
+    codebook_size: In[int, ">= 1"] = 512       # ignored by fsq, whose codebook has prod(fsq_levels) codes
+    dim: In[int, ">= 1"] = 512                 # code dimension
+    beta: In[float, ">= 0"] = 1.0              # commitment weight, for the trainer: losses["commit"] is unweighted
+    decay: In[float, "[0, 1]"] = 0.99            # EMA decay
+    eps: In[float, "> 0"] = 1e-5              # Laplace smoothing of EMA counts
+    reset_threshold: In[float, ">= 0"] = 1.0   # a code is dead if its (EMA or windowed) usage count < threshold
+    reset_window: In[int, ">= 1"] = 1          # training steps between dead-code checks (1 = every step, as T2M-GPT)
+    num_codebooks: In[int, ">= 1"] = 1         # rvq: number of residual codebooks
     rvq_base: str = "ema_reset"    # rvq: how each residual codebook learns (one of vq.VQ_KINDS)
-    quantizer_dropout: float = 1.0  # rvq: probability that a training batch uses only M ~ U{1..N} codebooks
+    # rvq: probability that a training batch uses only M ~ U{1..N} codebooks
+    quantizer_dropout: In[float, "[0, 1]"] = 1.0
     # Codebook start (see motok.quantize.vq.INITS): "uniform" U(-1/K, 1/K) for every kind (the
     # shared default, which the physics priors rely on); "batch": encoder outputs of the first
     # training batch; "t2m_gpt": per kind as T2M-GPT's code (uniform for vq, batch for ema, reset,
     # ema_reset); "kmeans": Lloyd's algorithm on the first batch (same as kmeans_init=True).
     init: str = "uniform"
     kmeans_init: bool = False      # older spelling of init="kmeans" (the priors' configs use it)
-    fsq_levels: list[int] = field(default_factory=lambda: [8, 5, 5, 5])
+    fsq_levels: In[list[int], ">= 2"] = field(default_factory=lambda: [8, 5, 5, 5])
 
 
 @dataclass

@@ -34,6 +34,7 @@ import numpy as np
 
 from motok.arrays import copy, like, xp
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.humanoid import Humanoid, load_humanoid
 from motok.sim.obs import Bodies, observation
 from motok.sim.steppers import Stepper, make_stepper
@@ -41,14 +42,14 @@ from motok.sim.steppers import Stepper, make_stepper
 
 @dataclass
 class SimConfig:
-    num_envs: int = 16
-    control_hz: float | None = None  # None: the humanoid's (30 Hz by default)
-    nthread: int = 2
+    num_envs: In[int, ">= 1"] = 16
+    control_hz: In[float | None, "> 0"] = None  # None: the humanoid's (30 Hz by default)
+    nthread: In[int, ">= 0"] = 2
     stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available (backend mujoco)
     backend: str = "mujoco"  # or "warp": MuJoCo Warp (pip install motok[gpu]), the same MJCF batched on a device
     device: str = "cpu"  # the physics device; "cuda" (or "cuda:1") needs backend warp
     nan_actions: str = "raise"  # or "terminate": that env holds its pose and is reported invalid
-    groups: int = 1  # environment groups a collector steps in turn, each while the policy runs on another
+    groups: In[int, ">= 1"] = 1  # environment groups a collector steps in turn, each while the policy runs on another
     # Keep the whole rollout (state, observations, goals, rewards, resets, policy, buffers) where the
     # physics state is: torch tensors on MuJoCo Warp's device, with no host copy per step (docs/sim.md
     # "On the device"). C MuJoCo's state is host memory, where the rollout runs anyway: no effect there.
@@ -57,7 +58,7 @@ class SimConfig:
     # filter some character controllers train with against high-frequency chatter (docs/sim.md);
     # after a reset it starts from the joints' angles. 1: each step's targets as given; None: the
     # world of the controller this one is trained from or over (same_world), 1 for an expert.
-    target_filter: float | None = None
+    target_filter: In[float | None, "(0, 1]"] = None
 
     @property
     def filter_b(self) -> float:

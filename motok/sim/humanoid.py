@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from motok.errors import MotokError
+from motok.ranges import In
 from motok.skeleton import Skeleton
 
 META_NAME = "motok_humanoid"
@@ -48,26 +49,27 @@ def from_mj(v: np.ndarray) -> np.ndarray:
 
 @dataclass
 class HumanoidConfig:
-    total_mass: float = 65.0  # kg; densities are scaled to reach it
-    timestep: float = 1.0 / 120.0  # 4 substeps per 30 Hz control step; docs/sim.md has the stability/speed measurements
-    control_hz: float = 30.0
-    range_margin_deg: float = 20.0
-    stiffness_per_kg: float = 15.0  # Nm/rad per kg moved: the ankle then holds ~1000 Nm/rad, > m g l
-    min_stiffness: float = 40.0  # Nm/rad; keeps light distal joints (elbows, neck) from being floppy
-    derivative_time: float = 0.1  # kv = derivative_time * kp (PHC's kp/kd ratio of 10)
+    total_mass: In[float, "> 0"] = 65.0  # kg; densities are scaled to reach it
+    # 4 substeps per 30 Hz control step; docs/sim.md has the stability/speed measurements
+    timestep: In[float, "> 0"] = 1.0 / 120.0
+    control_hz: In[float, "> 0"] = 30.0
+    range_margin_deg: In[float, "[0, 180]"] = 20.0
+    stiffness_per_kg: In[float, ">= 0"] = 15.0  # Nm/rad per kg moved: the ankle then holds ~1000 Nm/rad, > m g l
+    min_stiffness: In[float, ">= 0"] = 40.0  # Nm/rad; keeps light distal joints (elbows, neck) from being floppy
+    derivative_time: In[float, ">= 0"] = 0.1  # kv = derivative_time * kp (PHC's kp/kd ratio of 10)
     # The ankles' stiffness (and so damping) as a share of the mass rule's: a compliant ankle lets
     # the sole settle flat on the floor instead of holding the reference's foot angle against it.
-    ankle_stiffness_scale: float = 1.0
-    armature: float = 0.02
-    friction: float = 1.0
+    ankle_stiffness_scale: In[float, "> 0"] = 1.0
+    armature: In[float, ">= 0"] = 0.02
+    friction: In[float, ">= 0"] = 1.0
     # Physics cost: benchmarks/physics.py steps states recorded from PD tracking of walk, run, turn
     # and arm clips, falls included, under each option (table in docs/sim.md). Together the
     # defaults below are 1.19-1.22x the raw mj_step rate of the previous build (every pair
     # colliding, 20/10 iterations, automatic Jacobian, islands), same trajectories to 0.1 mm.
     # Newton takes 2.8 iterations on average and at most 9 on those states: 10 never binds (6 binds
     # on 2 % of the steps), so the cap bounds the worst step without changing the physics.
-    solver_iterations: int = 10
-    ls_iterations: int = 5
+    solver_iterations: In[int, ">= 1"] = 10
+    ls_iterations: In[int, ">= 1"] = 5
     # "data": the floor plus only the part pairs that touch in the data (arms vs trunk, arms vs
     # thighs, arm vs arm, leg vs leg; mjcf.contact_bits). What it drops (head, neck and clavicles vs
     # anything, arms vs shins and feet, trunk vs legs) touches in 0.01 % of 190k reference frames
@@ -82,14 +84,15 @@ class HumanoidConfig:
     # Hessian make the Newton solve about 30 % cheaper (1.12-1.16x the whole step), same result.
     jacobian: str = "sparse"  # "auto" | "dense" | "sparse"
     islands: bool = False  # one humanoid is one island: finding it every step only costs (1.02-1.05x)
-    max_frames: int = 20000  # frames sampled from the dataset for geometry and ranges
+    max_frames: In[int, ">= 1"] = 20000  # frames sampled from the dataset for geometry and ranges
     # The contact model (docs/sim.md "Feet"): part of the MJCF and of its metadata, so a controller
     # trained on one is never resumed or evaluated on another by mistake. The defaults are MuJoCo's.
     cone: str = "pyramidal"  # friction cone: "pyramidal" | "elliptic"
-    impratio: float = 1.0  # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
-    noslip_iterations: int = 0  # MuJoCo's no-slip post-solve on the friction rows (0: off)
-    contact_solref: tuple[float, float] = (0.02, 1.0)  # (time constant s, damping ratio) of every contact
-    contact_solimp: tuple[float, float, float] = (0.9, 0.95, 0.001)  # (dmin, dmax, width m) of every contact
+    # frictional-to-normal impedance ratio; > 1 makes friction harder (elliptic cones)
+    impratio: In[float, ">= 1"] = 1.0
+    noslip_iterations: In[int, ">= 0"] = 0  # MuJoCo's no-slip post-solve on the friction rows (0: off)
+    contact_solref: In[tuple[float, float], "> 0"] = (0.02, 1.0)  # (time constant s, damping ratio) of every contact
+    contact_solimp: In[tuple[float, float, float], "> 0"] = (0.9, 0.95, 0.001)  # (dmin, dmax, width m) of every contact
 
     def __post_init__(self):
         legacy = {"true": "all", "false": "none"}  # the option used to be a boolean

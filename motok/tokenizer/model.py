@@ -24,6 +24,7 @@ from motok.features.humanml3d import feature_slices
 from motok.optim import OptimConfig
 from motok.quantize.base import QuantizerConfig
 from motok.quantize.registry import build_quantizer
+from motok.ranges import In
 
 ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU}
 
@@ -31,10 +32,10 @@ ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU}
 @dataclass
 class ModelConfig:
     """Encoder/decoder shape. The code dimension is ``quantizer.dim`` (one source of truth)."""
-    width: int = 128  # 512 in the paper; recipes/tokenizer/paper.yaml
-    down_t: int = 2  # number of stride-2 stages: temporal rate 2**down_t
-    depth: int = 3  # residual blocks per stage
-    dilation_growth: int = 3  # dilations growth**k, applied largest first: (9, 3, 1)
+    width: In[int, ">= 1"] = 128  # 512 in the paper; recipes/tokenizer/paper.yaml
+    down_t: In[int, ">= 0"] = 2  # number of stride-2 stages: temporal rate 2**down_t
+    depth: In[int, ">= 1"] = 3  # residual blocks per stage
+    dilation_growth: In[int, ">= 1"] = 3  # dilations growth**k, applied largest first: (9, 3, 1)
     activation: str = "relu"
 
 
@@ -96,11 +97,11 @@ class Decoder(nn.Module):
 
 @dataclass
 class LossConfig:
-    alpha_vel: float = 0.5  # weight of the velocity term (paper: 0.5)
+    alpha_vel: In[float, ">= 0"] = 0.5  # weight of the velocity term (paper: 0.5)
     vel_block: str = "ric"  # "ric": root-relative joint positions (official block) | "all": every feature
     vel_diff: bool = True  # frame-to-frame difference as in Eq. 3; false reproduces the official code
-    beta_commit: float = 0.02  # commitment weight beta; multiplied by quantizer.beta (default 1)
-    codebook: float = 1.0  # weight of the codebook term ||sg(Z) - Z_q||^2 (Eq. 2); zero for EMA kinds
+    beta_commit: In[float, ">= 0"] = 0.02  # commitment weight beta; multiplied by quantizer.beta (default 1)
+    codebook: In[float, ">= 0"] = 1.0  # weight of the codebook term ||sg(Z) - Z_q||^2 (Eq. 2); zero for EMA kinds
 
 
 @dataclass
@@ -221,15 +222,20 @@ class TrainConfig:
         default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128, init="t2m_gpt"))
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    iterations: int = 2000
-    batch_size: int = 64  # global: split evenly over the ranks
-    window: int = 64  # frames per training crop
+    iterations: In[int, ">= 1"] = 2000
+    batch_size: In[int, ">= 1"] = 64  # global: split evenly over the ranks
+    window: In[int, ">= 1"] = 64  # frames per training crop
     split: str = "train"
-    seed: int = 123
-    log_every: int = 50
-    save_every: int = 500
+    seed: In[int, ">= 0"] = 123
+    log_every: In[int, ">= 1"] = 50
+    save_every: In[int, ">= 1"] = 500
     device: str = "auto"  # auto | cpu | cuda
-    threads: int = 0  # torch intra-op threads; 0 = torch's default
+    threads: In[int, ">= 0"] = 0  # torch intra-op threads; 0 = torch's default
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length (the schedule's milestones
+        are absolute iterations) and how often it logs and saves, none of which changes a step."""
+        return {"iterations", "log_every", "save_every"}
 
 
 class TokenizerError(MotokError, ValueError):

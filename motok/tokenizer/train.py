@@ -13,7 +13,6 @@ so ``K`` iterations + resume to ``2K`` is bitwise equal to ``2K`` straight.
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from dataclasses import dataclass
@@ -25,12 +24,13 @@ import torch
 from motok import progress as _progress
 from motok.artifacts import hash_inputs
 from motok.checkpoint import MetricsLog, load_bundle
-from motok.config import ConfigError, from_dict, load_config, to_dict
+from motok.config import ConfigError
 from motok.data.dataset import MotionFile
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
 from motok.optim import OptimConfig, lr_factor
 from motok.quantize.registry import build_quantizer
+from motok.resume import resolve_config as resume_config
 from motok.tokenizer.model import ACTIVATIONS, KIND, TokenizerError, TrainConfig, build_model, vqvae_loss
 
 
@@ -68,14 +68,13 @@ def load_train_data(path: str | Path, split: str, window: int) -> TrainData:
         if not idx:
             raise TokenizerError(f"{path}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
         mean, std = mf.stats()
-        feats = mf.h5["frames/features"]
         off = mf.frame_offsets
         rows, starts, lengths, pos = [], [], [], 0
         for i in idx:
             n = int(off[i + 1] - off[i])
             if n < window:  # too short for one crop (the official loader drops these too)
                 continue
-            rows.append(feats[off[i]:off[i + 1]])
+            rows.append(mf.frames("features", i))
             starts.append(pos)
             lengths.append(n)
             pos += n
@@ -148,24 +147,9 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
 
 
 def resolve_config(recipe=None, overrides=(), run: Path | None = None, resume: bool = False) -> TrainConfig:
-    """Recipe + overrides; on resume the saved config is the base and the recipe must not change it."""
-    if not resume:
-        return check_config(load_config(TrainConfig, recipe, overrides))
-    meta, _, _ = load_bundle(run, KIND)
-    # Through the dataclasses, so keys newer than the bundle get their defaults (an older run
-    # has no quantizer.init: it started uniform, QuantizerConfig's default).
-    saved = to_dict(from_dict(TrainConfig, copy.deepcopy(meta["config"])))
-    # A deep copy: load_config copies the base shallowly and --set writes into nested sections.
-    cfg = load_config(TrainConfig, None, overrides, base=copy.deepcopy(saved))
-    if recipe is not None:
-        fresh = to_dict(load_config(TrainConfig, recipe, overrides))
-        changed = [k for k in ("model", "quantizer", "loss", "window") if fresh[k] != to_dict(cfg)[k]]
-        if changed:
-            raise ConfigError(f"--resume: the recipe changes {changed} of the saved run {run}")
-    for k in ("model", "quantizer", "window", "batch_size", "seed"):
-        if to_dict(cfg)[k] != saved[k]:
-            raise ConfigError(f"--resume: {k} cannot change when resuming (saved {saved[k]!r})")
-    return check_config(cfg)
+    """Recipe + overrides; on resume the saved config, which they may not change beyond what
+    ``TrainConfig.resume_may_change`` allows (motok.resume)."""
+    return check_config(resume_config(TrainConfig, recipe, overrides, run, KIND, resume))
 
 
 # --------------------------------------------------------------------------- loop

@@ -16,6 +16,7 @@ from motok.control.rl.policies import EncoderDecoderPolicy
 from motok.control.rl.ppo import PPOConfig
 from motok.control.rl.sampling import SamplingConfig
 from motok.control.tasks.imitation import ImitationTaskConfig
+from motok.ranges import In
 from motok.sim.env import SimConfig
 from motok.sim.humanoid import Humanoid, HumanoidConfig
 
@@ -25,26 +26,27 @@ register_kind(KIND, (1,))
 
 @dataclass
 class NetConfig:
-    latent_dim: int = 64  # the encoder's latent z (no bottleneck: a plain vector)
-    encoder: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of E(s, s~) -> z
-    decoder: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of D(s, z) -> a
-    value: list[int] = field(default_factory=lambda: [512, 256])  # hidden sizes of the critic
+    latent_dim: In[int, ">= 1"] = 64  # the encoder's latent z (no bottleneck: a plain vector)
+    encoder: In[list[int], ">= 1"] = field(default_factory=lambda: [512, 256])  # hidden sizes of E(s, s~) -> z
+    decoder: In[list[int], ">= 1"] = field(default_factory=lambda: [512, 256])  # hidden sizes of D(s, z) -> a
+    value: In[list[int], ">= 1"] = field(default_factory=lambda: [512, 256])  # hidden sizes of the critic
     activation: str = "elu"  # relu | elu | tanh | silu
-    log_std: float = -1.6  # the Gaussian's state-independent log std (rad)
+    log_std: In[float, "any"] = -1.6  # the Gaussian's state-independent log std (rad)
     learn_log_std: bool = False  # a parameter (learned) rather than a buffer (fixed, PHC's choice)
 
 
 @dataclass
 class ExpertConfig:
-    seed: int = 0  # networks, task draws, minibatches
-    iterations: int = 1000  # PPO iterations (each: ppo.horizon steps of every environment, then the updates)
-    w_im: float = 0.5  # weight of the imitation reward r_im (Eq. 10)
-    w_style: float = 0.5  # weight of AMP's style reward r_style (Eq. 11); 0 also turns AMP off
-    save_every: int = 50  # iterations between checkpoints (every one resumes exactly)
-    eval_every: int = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
-    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every training clip)
-    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
-    update_threads: int = 0  # during the PPO and discriminator updates (0: torch_threads)
+    seed: In[int, ">= 0"] = 0  # networks, task draws, minibatches
+    # PPO iterations (each: ppo.horizon steps of every environment, then the updates)
+    iterations: In[int, ">= 1"] = 1000
+    w_im: In[float, ">= 0"] = 0.5  # weight of the imitation reward r_im (Eq. 10)
+    w_style: In[float, ">= 0"] = 0.5  # weight of AMP's style reward r_style (Eq. 11); 0 also turns AMP off
+    save_every: In[int, ">= 1"] = 50  # iterations between checkpoints (every one resumes exactly)
+    eval_every: In[int, ">= 0"] = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
+    eval_per_group: In[int, ">= 0"] = 0  # eval_* on this many clips per content x style (0: every training clip)
+    torch_threads: In[int, ">= 1"] = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
+    update_threads: In[int, ">= 0"] = 0  # during the PPO and discriminator updates (0: torch_threads)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
     task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)  # the imitation task
     action: ActionConfig = field(default_factory=ActionConfig)  # the action map (residual PD targets)
@@ -55,6 +57,11 @@ class ExpertConfig:
     # The world a new run builds from --data (contact model, PD gains; docs/sim.md): its MJCF goes
     # into the run, and a resume keeps it (a different one here is refused, not applied).
     humanoid: HumanoidConfig = field(default_factory=HumanoidConfig)
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length, unless the learning-rate
+        schedule spans it; anything else would make the run differ from an uninterrupted one."""
+        return {"iterations"} if self.ppo.lr_schedule == "constant" else set()
 
 
 def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: int) -> ActorCritic:

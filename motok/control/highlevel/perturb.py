@@ -35,26 +35,28 @@ import numpy as np
 from motok.control.tasks.episodes import episode_quota
 from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.balls import ball_states, detect_hits, find_balls, humanoid_capsules, launch_balls, park_balls, set_balls
 
 
 @dataclass
 class PerturbConfig:
-    radius: float = 0.1  # m; must match the ball model's
-    mass: float = 4.2  # kg; must match the ball model's
-    period: float = 0.3  # s between throws at one character (rounded to control steps)
-    distance: float = 1.0  # m, horizontal, from the root to the throw's start
-    speed: tuple[float, float] = (10.0, 20.0)  # m/s, uniform
-    height_range: tuple[float, float] = (0.5, 1.5)  # m above the floor, the throw's start
+    radius: In[float, "> 0"] = 0.1  # m; must match the ball model's
+    mass: In[float, "> 0"] = 4.2  # kg; must match the ball model's
+    period: In[float, "> 0"] = 0.3  # s between throws at one character (rounded to control steps)
+    distance: In[float, "> 0"] = 1.0  # m, horizontal, from the root to the throw's start
+    speed: In[tuple[float, float], ">= 0"] = (10.0, 20.0)  # m/s, uniform
+    height_range: In[tuple[float, float], ">= 0"] = (0.5, 1.5)  # m above the floor, the throw's start
     aim: str = "root"  # "root", or "body": a random body of the humanoid for each ball
     gravity_compensation: bool = True  # aim the ballistic arc (5 cm of drop over 1 m at 10 m/s)
-    flight_seconds: float = 0.5  # how long a ball must stay in the world: it arrives within 0.1 s
-    pool_size: int | None = None  # balls per environment; None: ceil(flight_seconds / period) + 1
-    recovery_seconds: float = 3.0
-    fall_height: float = 0.5  # m, head height
-    min_dv: float = 0.05  # m/s: a velocity change beyond gravity's that means a contact
-    contact_slack: float = 0.05  # m: how near the humanoid the ball's path must pass for the contact to be a hit
-    seed: int = 0
+    flight_seconds: In[float, "> 0"] = 0.5  # how long a ball must stay in the world: it arrives within 0.1 s
+    pool_size: In[int | None, ">= 1"] = None  # balls per environment; None: ceil(flight_seconds / period) + 1
+    recovery_seconds: In[float, "> 0"] = 3.0
+    fall_height: In[float, "> 0"] = 0.5  # m, head height
+    min_dv: In[float, ">= 0"] = 0.05  # m/s: a velocity change beyond gravity's that means a contact
+    # m: how near the humanoid the ball's path must pass for the contact to be a hit
+    contact_slack: In[float, ">= 0"] = 0.05
+    seed: In[int, ">= 0"] = 0  # the throws' draws
 
     def __post_init__(self):
         if self.aim not in ("root", "body"):

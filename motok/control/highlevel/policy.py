@@ -39,6 +39,7 @@ from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
 from motok.control.rl.ppo import PPOConfig
 from motok.control.tasks import registry
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
 from motok.sim.reference import ReferenceLibrary
@@ -49,10 +50,11 @@ register_kind(KIND, (1,))
 
 @dataclass
 class HighLevelNetConfig:
-    policy: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of the high-level policy's MLP
-    value: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of the critic's MLP
+    # hidden sizes of the high-level policy's MLP
+    policy: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
+    value: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of the critic's MLP
     activation: str = "elu"  # relu | elu | tanh | silu
-    std: float = 0.2  # continuous prior: exploration std of the offset u (fixed, as in the paper)
+    std: In[float, "> 0"] = 0.2  # continuous prior: exploration std of the offset u (fixed, as in the paper)
 
 
 class LatentActionMap:
@@ -117,23 +119,31 @@ def paper_ppo() -> PPOConfig:
 
 @dataclass
 class TaskTrainConfig:
-    seed: int = 0  # networks, task draws and minibatches
-    iterations: int = 2000  # PPO iterations (each: ppo.horizon steps of every environment, then the update)
+    seed: In[int, ">= 0"] = 0  # networks, task draws and minibatches
+    iterations: In[int, ">= 1"] = 2000  # PPO iterations (each: ppo.horizon steps of every environment, then the update)
     task: str = "navigation"  # one of motok.control.tasks.registry.names()
-    codebooks: int | None = None  # active codebooks M of a residual prior (None: all)
-    save_every: int = 50
-    eval_every: int = 0  # iterations between task evaluations logged as eval_* (0: never)
-    eval_episodes: int = 64
+    codebooks: In[int | None, ">= 1"] = None  # active codebooks M of a residual prior (None: all)
+    save_every: In[int, ">= 1"] = 50
+    eval_every: In[int, ">= 0"] = 0  # iterations between task evaluations logged as eval_* (0: never)
+    eval_episodes: In[int, ">= 1"] = 64
     deterministic_eval: bool = True  # evaluate with the most likely action (argmax codes, the mean offset)
-    torch_threads: int = 1  # during rollouts: MuJoCo has the cores
-    update_threads: int = 0  # during the PPO update (0: torch_threads)
+    torch_threads: In[int, ">= 1"] = 1  # during rollouts: MuJoCo has the cores
+    update_threads: In[int, ">= 0"] = 0  # during the PPO update (0: torch_threads)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
     tasks: registry.TaskConfigs = field(default_factory=registry.TaskConfigs)  # every task's settings: tasks.NAME.FIELD
     ppo: PPOConfig = field(default_factory=paper_ppo)  # the update (Tables 6-8's values by default)
     net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)  # the high-level policy and critic
 
+    # Taken from the prior when a run starts and saved resolved: a resume's recipe may leave them out.
+    RESUME_DERIVED = ("env.control_hz", "env.target_filter")
+
     def check(self) -> None:
         registry.check(self.task)
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length, unless the learning-rate
+        schedule spans it."""
+        return {"iterations"} if self.ppo.lr_schedule == "constant" else set()
 
 
 def task_mdp(cfg: TaskTrainConfig, hum: Humanoid, lib: ReferenceLibrary, model: LatentPrior, scale: float,

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from motok.checkpoint import read_meta
+from motok.config import checked
 from motok.control import runs
 from motok.control.highlevel.evaluate import evaluate_policy
 from motok.control.highlevel.policy import (KIND, TaskTrainConfig, action_space, build_high_level, task_mdp)
@@ -124,6 +125,8 @@ def train_from_prior(cfg: TaskTrainConfig, prior_run, run, *, task: str | None =
         cfg.task = task
     if codebooks is not None:
         cfg.codebooks = codebooks
+        checked(cfg)  # the option's range is the field's: task learning chooses codes in at least one codebook
+    cfg.check()  # a task named in the recipe or --set is known before anything is loaded
     prior_run, run = Path(prior_run), Path(run)
     if resume and (run / "bundle.json").exists():
         saved = read_meta(run, KIND)["extra"]["task"]

@@ -18,6 +18,7 @@ import numpy as np
 
 from motok.arrays import is_tensor
 from motok.errors import UserError
+from motok.ranges import In
 
 BASES = ("current", "reference")
 
@@ -25,7 +26,7 @@ BASES = ("current", "reference")
 @dataclass
 class ActionConfig:
     base: str = "current"  # what the action is a residual on: current | reference
-    scale: float = 1.0  # PD target offset (rad) per unit of action
+    scale: In[float, "> 0"] = 1.0  # PD target offset (rad) per unit of action
 
     def __post_init__(self):
         if self.base not in BASES:

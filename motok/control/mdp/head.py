@@ -23,6 +23,7 @@ from motok.arrays import xp
 from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.rewards import check_non_negative
 from motok.control.mdp.terminations import tracking_failure
+from motok.ranges import In
 from motok.sim.obs import Bodies, cross3
 
 HEAD_FEATURES = 15  # position (3), rotation 6D (6), velocity (3), angular velocity (3)
@@ -53,14 +54,14 @@ def rotation_angle(q, q_ref):
 class HeadRewardConfig:
     """Weights and exponents of the head reward (the fork's ``compute_phc_reward`` on the head)."""
 
-    w_pos: float = 0.5  # weight of exp(-k_pos e_pos)
-    k_pos: float = 100.0  # exponent on e_pos, the the head's position error (m^2)
-    w_rot: float = 0.3  # weight of exp(-k_rot e_rot)
-    k_rot: float = 10.0  # exponent on e_rot, the the angle between head rotations (rad^2)
-    w_vel: float = 0.1  # weight of exp(-k_vel e_vel)
-    k_vel: float = 0.1  # exponent on e_vel, the the head's velocity error ((m/s)^2)
-    w_angvel: float = 0.1  # weight of exp(-k_angvel e_angvel)
-    k_angvel: float = 0.1  # exponent on e_angvel, the the head's angular velocity error ((rad/s)^2)
+    w_pos: In[float, ">= 0"] = 0.5  # weight of exp(-k_pos e_pos)
+    k_pos: In[float, ">= 0"] = 100.0  # exponent on e_pos, the the head's position error (m^2)
+    w_rot: In[float, ">= 0"] = 0.3  # weight of exp(-k_rot e_rot)
+    k_rot: In[float, ">= 0"] = 10.0  # exponent on e_rot, the the angle between head rotations (rad^2)
+    w_vel: In[float, ">= 0"] = 0.1  # weight of exp(-k_vel e_vel)
+    k_vel: In[float, ">= 0"] = 0.1  # exponent on e_vel, the the head's velocity error ((m/s)^2)
+    w_angvel: In[float, ">= 0"] = 0.1  # weight of exp(-k_angvel e_angvel)
+    k_angvel: In[float, ">= 0"] = 0.1  # exponent on e_angvel, the the head's angular velocity error ((rad/s)^2)
 
     def __post_init__(self):
         check_non_negative(self, "hmd reward")

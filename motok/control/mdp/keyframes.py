@@ -41,6 +41,7 @@ from motok.arrays import is_tensor, like, xp
 from motok.control.mdp.observations import imitation_goal
 from motok.control.mdp.rewards import check_non_negative
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.obs import Bodies
 
 KEYFRAME_FEATURES = 9  # per body: position difference (3) + rotation difference (6D)
@@ -121,14 +122,14 @@ def keyframe_goal(sim: Bodies, keys: Bodies):
 class InbetweenRewardConfig:
     """Eq. 14 weights and exponents (the fork's ``compute_deepmimic_reward``)."""
 
-    w_q: float = 0.65  # weight of exp(-k_q e_q)
-    k_q: float = 2.0  # exponent on e_q, the mean squared hinge angle error (rad^2)
-    w_qd: float = 0.1  # weight of exp(-k_qd e_qd)
-    k_qd: float = 0.1  # exponent on e_qd, the mean squared hinge velocity error ((rad/s)^2)
-    w_ee: float = 0.15  # weight of exp(-k_ee e_ee)
-    k_ee: float = 40.0  # exponent on e_ee, the mean squared end-effector position error (m^2)
-    w_root: float = 0.1  # weight of exp(-k_root e_root)
-    k_root: float = 10.0  # exponent on e_root, the squared root position error (m^2)
+    w_q: In[float, ">= 0"] = 0.65  # weight of exp(-k_q e_q)
+    k_q: In[float, ">= 0"] = 2.0  # exponent on e_q, the mean squared hinge angle error (rad^2)
+    w_qd: In[float, ">= 0"] = 0.1  # weight of exp(-k_qd e_qd)
+    k_qd: In[float, ">= 0"] = 0.1  # exponent on e_qd, the mean squared hinge velocity error ((rad/s)^2)
+    w_ee: In[float, ">= 0"] = 0.15  # weight of exp(-k_ee e_ee)
+    k_ee: In[float, ">= 0"] = 40.0  # exponent on e_ee, the mean squared end-effector position error (m^2)
+    w_root: In[float, ">= 0"] = 0.1  # weight of exp(-k_root e_root)
+    k_root: In[float, ">= 0"] = 10.0  # exponent on e_root, the squared root position error (m^2)
 
     def __post_init__(self):
         check_non_negative(self, "inbetween reward")

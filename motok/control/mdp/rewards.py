@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from motok.arrays import xp
 from motok.errors import UserError
+from motok.ranges import In
 
 
 def check_non_negative(cfg, label: str) -> None:
@@ -31,11 +32,12 @@ def check_non_negative(cfg, label: str) -> None:
 
 @dataclass
 class ImitationConfig:
-    k_root: float = 10.0  # Eq. 10's factor exp(-k_root e_root), e_root the root position error (m^2)
-    k_q: float = 2.0  # exp(-k_q e_q), e_q the hinge angle error (rad^2)
-    k_alpha: float = 0.5  # exp(-k_alpha e_alpha), e_alpha the mean squared hinge velocity error ((rad/s)^2)
-    k_ee: float = 40.0  # exp(-k_ee e_ee), e_ee the root-relative end-effector position error (m^2)
-    k_feet: float = 0.0  # exp(-k_feet e_feet), e_feet the feet's velocity error ((m/s)^2); 0 leaves it out (Eq. 10)
+    k_root: In[float, ">= 0"] = 10.0  # Eq. 10's factor exp(-k_root e_root), e_root the root position error (m^2)
+    k_q: In[float, ">= 0"] = 2.0  # exp(-k_q e_q), e_q the hinge angle error (rad^2)
+    k_alpha: In[float, ">= 0"] = 0.5  # exp(-k_alpha e_alpha), e_alpha the mean squared hinge velocity error ((rad/s)^2)
+    k_ee: In[float, ">= 0"] = 40.0  # exp(-k_ee e_ee), e_ee the root-relative end-effector position error (m^2)
+    # exp(-k_feet e_feet), e_feet the feet's velocity error ((m/s)^2); 0 leaves it out (Eq. 10)
+    k_feet: In[float, ">= 0"] = 0.0
 
 
 def imitation_errors(pos, ref_pos, q, q_ref, qd, qd_ref, ee) -> dict:

@@ -238,16 +238,16 @@ def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None 
 
     if prior is not None and prior not in KINDS:
         raise UserError(f"--kind must be one of {', '.join(KINDS)}, not {prior!r}")
+    expert_run, run = Path(expert_run), Path(run)
+    if resume and (run / "bundle.json").exists():  # before the recipe's kind: a resume's config is the run's
+        saved = read_meta(run, KIND)["extra"]["prior"]["kind"]
+        if saved != (prior or cfg.prior.kind):
+            raise UserError(f"{run} holds a {saved!r} prior; cannot resume it as {prior or cfg.prior.kind!r}")
     if prior and cfg.prior.kind and cfg.prior.kind != prior:
         raise UserError(f"the recipe is for a {cfg.prior.kind!r} prior, not {prior!r}")
     cfg.prior.kind = prior or cfg.prior.kind
     cfg.prior.check()
-    expert_run, run = Path(expert_run), Path(run)
     emeta = read_meta(expert_run, EXPERT_KIND)
-    if resume and (run / "bundle.json").exists():
-        saved = read_meta(run, KIND)["extra"]["prior"]["kind"]
-        if saved != cfg.prior.kind:
-            raise UserError(f"{run} holds a {saved!r} prior; cannot resume it as {cfg.prior.kind!r}")
     src = data or bundle_ref(expert_run, emeta, "data", hint=": pass --data")
     names = select_clips(src, clips, split) if clips or split else emeta["extra"]["clips"]
     hum = load_humanoid(expert_run / "humanoid.xml")

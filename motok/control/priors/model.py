@@ -44,6 +44,7 @@ from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.errors import UserError
 from motok.quantize.base import QuantizerConfig
 from motok.quantize.registry import build_quantizer
+from motok.ranges import In
 from motok.sim.env import SimConfig
 from motok.sim.humanoid import Humanoid
 
@@ -55,20 +56,22 @@ register_kind(KIND, (1,))
 @dataclass
 class PriorConfig:
     kind: str = ""  # one of KINDS; `motok control distill --prior` sets it
-    latent_dim: int = 64
-    posterior_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_phi(s, s~) -> z
-    prior_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_theta(s) -> z_p
-    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden sizes of pi_low(s, z_bar) -> a
+    latent_dim: In[int, ">= 1"] = 64
+    # hidden sizes of f_phi(s, s~) -> z
+    posterior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
+    prior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_theta(s) -> z_p
+    # hidden sizes of pi_low(s, z_bar) -> a
+    decoder_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     activation: str = "elu"  # relu | elu | tanh | silu
-    log_std_min: float = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
-    log_std_max: float = 1.0
-    num_codebooks: int = 8  # discrete+ and hybrid: residual codebooks
-    codebook_size: int = 128  # codes per residual codebook
-    vq_codebook_size: int = 1024  # discrete and hybrid-vq: the single codebook
+    log_std_min: In[float, "any"] = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
+    log_std_max: In[float, "any"] = 1.0
+    num_codebooks: In[int, ">= 1"] = 8  # discrete+ and hybrid: residual codebooks
+    codebook_size: In[int, ">= 1"] = 128  # codes per residual codebook
+    vq_codebook_size: In[int, ">= 1"] = 1024  # discrete and hybrid-vq: the single codebook
     quantizer: str = "ema_reset"  # how each codebook learns (motok.quantize.vq.VQ_KINDS)
-    decay: float = 0.99  # EMA decay
-    reset_threshold: float = 2.0  # EMA usage below which a code is reset (the authors' code: 2)
-    quantizer_dropout: float = 1.0  # share of training batches that use only M ~ U{1..N} codebooks
+    decay: In[float, "[0, 1]"] = 0.99  # EMA decay
+    reset_threshold: In[float, ">= 0"] = 2.0  # EMA usage below which a code is reset (the authors' code: 2)
+    quantizer_dropout: In[float, "[0, 1]"] = 1.0  # share of training batches that use only M ~ U{1..N} codebooks
     kmeans_init: bool = True  # codebooks from k-means on the first training batch
 
     def check(self) -> None:
@@ -227,9 +230,9 @@ class LatentPrior(nn.Module):
 
 @dataclass
 class WeightSchedule:
-    start: float = 0.0  # the weight at iteration 0
-    end: float = 0.0  # the weight once the ramp is over
-    ramp: float = 0.125  # share of the iterations over which the weight moves linearly from start to end
+    start: In[float, ">= 0"] = 0.0  # the weight at iteration 0
+    end: In[float, ">= 0"] = 0.0  # the weight once the ramp is over
+    ramp: In[float, "[0, 1]"] = 0.125  # share of the iterations over which the weight moves linearly from start to end
 
     def at(self, iteration: int, total: int) -> float:
         n = self.ramp * total
@@ -238,29 +241,30 @@ class WeightSchedule:
 
 @dataclass
 class LossConfig:
-    action: float = 10.0  # weight of ||a - a_label||^2
-    commit: float = 1.0  # beta
-    reg: float | None = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
+    action: In[float, ">= 0"] = 10.0  # weight of ||a - a_label||^2
+    commit: In[float, ">= 0"] = 1.0  # beta
+    reg: In[float | None, ">= 0"] = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
     mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
     kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
 
 
 @dataclass
 class DistillConfig:
-    seed: int = 0  # the student's weights, task draws, minibatches
-    iterations: int = 3000  # DAgger iterations (each: horizon steps of every environment, then epochs of Eq. 6)
-    save_every: int = 50  # iterations between checkpoints (every one resumes exactly)
-    eval_every: int = 0  # iterations between imitation evaluations of the student, logged as eval_*
-    eval_per_group: int = 0  # eval_* on this many clips per content x style (0: every clip)
-    eval_batch: int = 256
-    torch_threads: int = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
-    update_threads: int = 0  # during the supervised update, while the physics is idle (0: torch_threads)
-    horizon: int = 32  # steps per environment per iteration
-    epochs: int = 4  # passes over each iteration's data
-    minibatch_size: int = 1024  # samples; rounded down to whole environment columns of `horizon` steps
-    lr: float = 2e-4  # the authors' distillation learning rate
-    max_grad_norm: float = 1.0
-    action_noise: float = 0.055  # std of the noise on the student's actions while collecting (rad)
+    seed: In[int, ">= 0"] = 0  # the student's weights, task draws, minibatches
+    # DAgger iterations (each: horizon steps of every environment, then epochs of Eq. 6)
+    iterations: In[int, ">= 1"] = 3000
+    save_every: In[int, ">= 1"] = 50  # iterations between checkpoints (every one resumes exactly)
+    eval_every: In[int, ">= 0"] = 0  # iterations between imitation evaluations of the student, logged as eval_*
+    eval_per_group: In[int, ">= 0"] = 0  # eval_* on this many clips per content x style (0: every clip)
+    eval_batch: In[int, ">= 1"] = 256
+    torch_threads: In[int, ">= 1"] = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
+    update_threads: In[int, ">= 0"] = 0  # during the supervised update, while the physics is idle (0: torch_threads)
+    horizon: In[int, ">= 1"] = 32  # steps per environment per iteration
+    epochs: In[int, ">= 1"] = 4  # passes over each iteration's data
+    minibatch_size: In[int, ">= 1"] = 1024  # samples; rounded down to whole environment columns of `horizon` steps
+    lr: In[float, "> 0"] = 2e-4  # the authors' distillation learning rate
+    max_grad_norm: In[float, "> 0"] = 1.0
+    action_noise: In[float, ">= 0"] = 0.055  # std of the noise on the student's actions while collecting (rad)
     env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
     # the imitation task; goal_frames must be the expert's
     task: ImitationTaskConfig = field(default_factory=lambda: ImitationTaskConfig(termination="mean"))
@@ -268,6 +272,15 @@ class DistillConfig:
     action: ActionConfig = field(default_factory=lambda: ActionConfig("current"))
     prior: PriorConfig = field(default_factory=PriorConfig)  # the prior's kind and sizes
     loss: LossConfig = field(default_factory=LossConfig)  # Eq. 6's weights
+
+    # Set when a run starts (--prior, the expert's filter) and saved resolved: a resume's recipe may leave them out.
+    RESUME_DERIVED = ("prior.kind", "env.target_filter")
+
+    def resume_may_change(self) -> set[str]:
+        """What ``--resume`` may change (motok.resume): the run's length, unless a loss weight
+        ramps over a share of it."""
+        ramps = [w for w in (self.loss.mm, self.loss.kl) if w.start != w.end and w.ramp > 0]
+        return set() if ramps else {"iterations"}
 
 
 def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:

@@ -27,22 +27,23 @@ from torch import nn
 
 from motok.control.rl.networks import mlp
 from motok.control.rl.ppo import average_gradients, world_size
+from motok.ranges import In
 from motok.sim.obs import Bodies, observation
 
 
 @dataclass
 class AMPConfig:
     enabled: bool = True  # false: no discriminator and no style reward
-    hidden: list[int] = field(default_factory=lambda: [256, 256])  # the discriminator's hidden sizes
+    hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # the discriminator's hidden sizes
     activation: str = "relu"  # relu | elu | tanh | silu
-    lr: float = 1e-4  # the discriminator's Adam learning rate
-    weight_decay: float = 1e-4  # L2 on the discriminator's weights
-    grad_penalty: float = 5.0  # w_gp of the zero-centred gradient penalty on reference inputs
-    logit_reg: float = 0.01  # L2 on the last layer's weights: keeps logits from saturating
-    batch_size: int = 512
-    updates: int = 8  # discriminator minibatches per PPO iteration
-    replay_size: int = 100_000
-    style_scale: float = 5.0  # r_style = -style_scale log(1 - D)
+    lr: In[float, "> 0"] = 1e-4  # the discriminator's Adam learning rate
+    weight_decay: In[float, ">= 0"] = 1e-4  # L2 on the discriminator's weights
+    grad_penalty: In[float, ">= 0"] = 5.0  # w_gp of the zero-centred gradient penalty on reference inputs
+    logit_reg: In[float, ">= 0"] = 0.01  # L2 on the last layer's weights: keeps logits from saturating
+    batch_size: In[int, ">= 1"] = 512
+    updates: In[int, ">= 0"] = 8  # discriminator minibatches per PPO iteration
+    replay_size: In[int, ">= 1"] = 100_000
+    style_scale: In[float, ">= 0"] = 5.0  # r_style = -style_scale log(1 - D)
 
 
 def gradient_penalty(logit_fn, x_ref: torch.Tensor) -> torch.Tensor:

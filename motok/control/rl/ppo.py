@@ -36,27 +36,29 @@ import torch.distributed as dist
 
 from motok.control.rl.networks import ActorCritic
 from motok.errors import UserError
+from motok.ranges import In
 
 
 @dataclass
 class PPOConfig:
-    horizon: int = 32  # steps per environment per iteration
-    epochs: int = 5
-    minibatch_size: int = 512  # samples per gradient step (a ragged last minibatch is dropped)
-    gamma: float = 0.99  # discount
-    lam: float = 0.95  # GAE lambda
-    clip: float = 0.2  # epsilon of the clipped surrogate
+    horizon: In[int, ">= 1"] = 32  # steps per environment per iteration
+    epochs: In[int, ">= 1"] = 5
+    minibatch_size: In[int, ">= 1"] = 512  # samples per gradient step (a ragged last minibatch is dropped)
+    gamma: In[float, "[0, 1]"] = 0.99  # discount
+    lam: In[float, "[0, 1]"] = 0.95  # GAE lambda
+    clip: In[float, "> 0"] = 0.2  # epsilon of the clipped surrogate
     clip_value: bool = False  # clip the value loss around the old values
-    value_clip: float = 0.2  # only with clip_value; in return units, so tight for large returns
-    value_coef: float = 0.5
-    entropy_coef: float = 0.0  # entropy bonus (a constant for a fixed-std Gaussian)
-    max_grad_norm: float = 1.0  # global gradient-norm clip
-    lr: float = 3e-4  # Adam learning rate (the schedule's start)
+    value_clip: In[float, "> 0"] = 0.2  # only with clip_value; in return units, so tight for large returns
+    value_coef: In[float, ">= 0"] = 0.5
+    entropy_coef: In[float, ">= 0"] = 0.0  # entropy bonus (a constant for a fixed-std Gaussian)
+    max_grad_norm: In[float, "> 0"] = 1.0  # global gradient-norm clip
+    lr: In[float, "> 0"] = 3e-4  # Adam learning rate (the schedule's start)
     lr_schedule: str = "constant"  # constant | linear | cosine (to lr_min at the last iteration)
-    lr_min: float = 0.0
-    adam_eps: float = 1e-5  # Adam epsilon (CleanRL's)
+    lr_min: In[float, ">= 0"] = 0.0
+    adam_eps: In[float, "> 0"] = 1e-5  # Adam epsilon (CleanRL's)
     norm_adv: bool = True  # normalise advantages per minibatch
-    target_kl: float | None = None  # stop an update's epochs once the approximate KL exceeds this (None: never)
+    # stop an update's epochs once the approximate KL exceeds this (None: never)
+    target_kl: In[float | None, "> 0"] = None
 
 
 def gae(rewards, values, next_values, terminated, truncated, gamma: float, lam: float):

@@ -32,8 +32,12 @@ from motok.config import to_dict
 from motok.control.rl.ppo import KL_WINDOW, kl_warning
 from motok.control.runs import mjcf_hash
 from motok.distributed import Dist, gather, init_distributed, shutdown_distributed
+from motok.errors import UserError
+from motok.resume import carried_links, check_inputs, check_settings
 from motok.sim.humanoid import Humanoid
 
+# The option that names each run a control run is made from (motok.control.runs.link_record keys).
+LINK_FLAGS = {"expert": "--expert", "prior": "--prior", "init": "--init"}
 SUMMARY_KEYS = ("episode_return", "episode_seconds", "success", "r_im", "samples_per_s")
 # What the progress bar shows after the rate: (label, metric key, format).
 BAR_FIELDS = (("ret", "episode_return", "{:.1f}"), ("len", "episode_seconds", "{:.2f}s"), ("succ", "success", "{:.2f}"))
@@ -148,6 +152,23 @@ class _StopSignal:
 stop_signal = _StopSignal()
 
 
+def _note_inexact(run: Path, start: int, stop: int, cfg, resumed: bool, main: bool) -> None:
+    """Say when a run will not repeat an uninterrupted one to the digit, or has nothing to do: every
+    environment restarts at a checkpoint, so a checkpoint between save_every multiples (an --until
+    that is not one) is a restart an uninterrupted run does not make."""
+    if not main:
+        return
+    if resumed and start >= stop:
+        _progress.info(f"note: {run} is already at iteration {start}: nothing to train (it stops at {stop})")
+    elif resumed and start % cfg.save_every and start < cfg.iterations:
+        _progress.info(f"note: {run} stopped at iteration {start}, between checkpoints (save_every "
+                       f"{cfg.save_every}): resuming restarts every environment there, which an uninterrupted "
+                       f"run does not, so it will not repeat one to the digit")
+    elif stop % cfg.save_every and stop < cfg.iterations and stop > start:
+        _progress.info(f"note: --until {stop} is between checkpoints (save_every {cfg.save_every}): a --resume from "
+                       f"it will not repeat an uninterrupted run to the digit (a multiple of {cfg.save_every} would)")
+
+
 def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, kind: str, resume: bool = False,
           until: int | None = None, data=None, command: str | None = None, extra: dict | None = None,
           evaluate: Callable[[Trainer], dict] | None = None, label: str = "train",
@@ -170,6 +191,14 @@ def train(make_trainer: Callable[[Dist], Trainer], cfg, run, hum: Humanoid, *, k
 def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command, extra, evaluate, label,
            d: Dist, fields: tuple, summary_keys: tuple) -> dict:
     saved = load_bundle(run, kind, with_train_state=True) if resume else None
+    if until is not None and until > cfg.iterations:  # stopping at cfg.iterations instead would be silent
+        raise UserError(f"--until {until} is past the run's {cfg.iterations} iterations, where its schedules end: "
+                        f"set iterations to train longer")
+    inputs = hash_inputs([data]) if data and (d.main or saved) else {}
+    if saved:  # every input the run records, before anything is built or written
+        check_settings(run, saved[0]["config"], cfg)
+        check_inputs(run, saved[0], data_hash=next(iter(inputs.values()), None), links=extra, flags=LINK_FLAGS)
+        extra = {**carried_links(run, saved[0], extra), **extra}
     if saved and saved[0]["extra"].get("mjcf_sha256") != mjcf_hash(hum):
         raise CheckpointError(f"{run}: the checkpoint was trained on another humanoid (MJCF hash differs)")
     if saved and int(saved[2].get("world_size", 0)) != d.world:
@@ -183,16 +212,18 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
         ts = saved[2]
         tr.load(saved[1], ts["shared"], ts["ranks"][d.rank])
         set_rng_state(ts["ranks"][d.rank]["rng"])
+    if saved:
+        check_inputs(run, saved[0], clips=tr.spec().get("clips"))
     if d.main:
         run.mkdir(parents=True, exist_ok=True)
         if Path(hum.path).resolve() != (run / "humanoid.xml").resolve():
             shutil.copyfile(hum.path, run / "humanoid.xml")
-    inputs = hash_inputs([data]) if data and d.main else {}
     prov = Provenance(command=command or command_line(), config=to_dict(cfg), inputs=inputs)
     extra = {"mjcf_sha256": mjcf_hash(hum), **tr.spec(), **extra, "data": Path(data) if data else None, "world_size": d.world}
     log = MetricsLog(run / "metrics.jsonl", resume_from=tr.iteration if saved else None) if d.main else None
     stop = min(cfg.iterations, until if until is not None else cfg.iterations)
     per_it = tr.samples_per_iteration
+    _note_inexact(run, tr.iteration, stop, cfg, saved is not None, d.main)
     last: dict = {}
 
     def save():

@@ -24,13 +24,14 @@ import numpy as np
 import torch
 
 from motok.errors import UserError
+from motok.ranges import In
 
 
 @dataclass
 class SamplingConfig:
-    hard_fraction: float = 0.0  # beta; 0: plain length-proportional reference state initialisation
-    every: int = 0  # iterations between difficulty evaluations (0: never)
-    eval_batch: int = 256  # environments per evaluation chunk (clips of similar length together)
+    hard_fraction: In[float, "[0, 1]"] = 0.0  # beta; 0: plain length-proportional reference state initialisation
+    every: In[int, ">= 0"] = 0  # iterations between difficulty evaluations (0: never)
+    eval_batch: In[int, ">= 1"] = 256  # environments per evaluation chunk (clips of similar length together)
 
     def __post_init__(self):
         if not 0.0 <= self.hard_fraction <= 1.0:

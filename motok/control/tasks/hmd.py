@@ -30,15 +30,16 @@ from motok.control.mdp.terminations import body_distances, end_of_step
 from motok.control.tasks.episodes import Act, EpisodeErrors, reference_errors, whole_episodes
 from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.env import HumanoidEnv
 from motok.sim.reference import ReferenceLibrary
 
 
 @dataclass
 class HMDTaskConfig:
-    episode_seconds: float = 5.0  # an episode's length (a head trajectory)
-    goal_frames: int = 5  # reference head frames ahead in the goal (the fork's numNextObsSteps)
-    termination_distance: float = 1.0  # m, head to reference head (paper C.2; the fork's recipe: 1.5)
+    episode_seconds: In[float, "> 0"] = 5.0  # an episode's length (a head trajectory)
+    goal_frames: In[int, ">= 1"] = 5  # reference head frames ahead in the goal (the fork's numNextObsSteps)
+    termination_distance: In[float, "> 0"] = 1.0  # m, head to reference head (paper C.2; the fork's recipe: 1.5)
     early_termination: bool = True
     reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)  # the head reward's weights and exponents
 

@@ -36,6 +36,7 @@ from motok.control.rl.rollout import as_tensor
 from motok.errors import UserError
 from motok.eval.metrics import acceleration_error, mpjpe, velocity_error
 from motok.eval.physical import PhysicalSums, clip_sums
+from motok.ranges import In
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
 from motok.sim.obs import Bodies
@@ -45,10 +46,10 @@ from motok.sim.soles import SlipSums, Soles, reference_corners, slip_sums, soles
 
 @dataclass
 class ImitationTaskConfig:
-    max_episode_seconds: float = 10.0  # time limit of an episode (a clip's end comes first when sooner)
-    goal_frames: int = 1  # K reference frames ahead in the goal (Eq. 9)
+    max_episode_seconds: In[float, "> 0"] = 10.0  # time limit of an episode (a clip's end comes first when sooner)
+    goal_frames: In[int, ">= 1"] = 1  # K reference frames ahead in the goal (Eq. 9)
     termination: str = "any"  # "any" body beyond the distance, or the "mean" over bodies (PHC's failure test)
-    termination_distance: float = 0.5  # m, from the reference
+    termination_distance: In[float, "> 0"] = 0.5  # m, from the reference
     early_termination: bool = True
     reward: ImitationConfig = field(default_factory=ImitationConfig)  # Eq. 10's exponents
 

@@ -43,6 +43,7 @@ from motok.control.mdp.terminations import MODES, body_distances, end_of_step, t
 from motok.control.tasks.episodes import Act, EpisodeErrors, reference_errors, whole_episodes
 from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.env import HumanoidEnv
 from motok.sim.obs import Bodies
 from motok.sim.reference import ReferenceLibrary
@@ -53,15 +54,15 @@ TIME_ENCODINGS = ("add", "concat", "none")
 
 @dataclass
 class InbetweenTaskConfig:
-    window_seconds: float = 4.0  # a window's length; its last frame is the last keyframe
-    num_keyframes: int = 4  # per window, the start and the window's last frame included (C.1, training)
-    eval_keyframes: int = 5  # per window in evaluation (Table 2)
-    min_keyframe_gap_seconds: float = 0.5  # the fork's 15 frames at 30 Hz
+    window_seconds: In[float, "> 0"] = 4.0  # a window's length; its last frame is the last keyframe
+    num_keyframes: In[int, ">= 2"] = 4  # per window, the start and the window's last frame included (C.1, training)
+    eval_keyframes: In[int, ">= 2"] = 5  # per window in evaluation (Table 2)
+    min_keyframe_gap_seconds: In[float, ">= 0"] = 0.5  # the fork's 15 frames at 30 Hz
     goal_keyframes: str = "next"  # "next": next + the one after; "previous": last passed + next (the fork's)
     time_encoding: str = "add"  # "add" to the keyframe goal (the fork's), "concat" time_encoding_dim numbers, "none"
-    time_encoding_dim: int = 16  # only with "concat"
+    time_encoding_dim: In[int, ">= 1"] = 16  # only with "concat"
     termination: str = "mean"  # body distance test: "mean" over bodies or "any" body
-    termination_distance: float = 0.5  # m, from the reference
+    termination_distance: In[float, "> 0"] = 0.5  # m, from the reference
     early_termination: bool = True
     reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)  # Eq. 14's weights and exponents
 

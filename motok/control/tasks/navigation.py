@@ -37,6 +37,7 @@ from motok.control.mdp.terminations import end_of_step
 from motok.control.tasks.episodes import Step, play_episodes
 from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.env import HumanoidEnv
 from motok.sim.humanoid import from_mj
 from motok.sim.reference import ReferenceLibrary
@@ -44,16 +45,16 @@ from motok.sim.reference import ReferenceLibrary
 
 @dataclass
 class NavigationTaskConfig:
-    episode_seconds: float = 8.0  # an episode's length (two targets)
-    retarget_seconds: float = 4.0  # a new target this often (120 control steps at 30 Hz)
-    min_distance: float = 5.0  # m, new targets from the root
-    max_distance: float = 10.0
-    speed: float = 1.0  # u, m/s toward the target that earns the full velocity term
-    reach_radius: float = 0.5  # m: the velocity term is 1 within it; "reached" for evaluation
-    k_pos: float = 0.5  # exp(-k_pos d^2)
-    w_pos: float = 0.7
-    w_vel: float = 0.3  # weight of the velocity term
-    fall_height: float = 0.5  # m, head height
+    episode_seconds: In[float, "> 0"] = 8.0  # an episode's length (two targets)
+    retarget_seconds: In[float, "> 0"] = 4.0  # a new target this often (120 control steps at 30 Hz)
+    min_distance: In[float, ">= 0"] = 5.0  # m, new targets from the root
+    max_distance: In[float, ">= 0"] = 10.0
+    speed: In[float, ">= 0"] = 1.0  # u, m/s toward the target that earns the full velocity term
+    reach_radius: In[float, "> 0"] = 0.5  # m: the velocity term is 1 within it; "reached" for evaluation
+    k_pos: In[float, ">= 0"] = 0.5  # exp(-k_pos d^2)
+    w_pos: In[float, ">= 0"] = 0.7
+    w_vel: In[float, ">= 0"] = 0.3  # weight of the velocity term
+    fall_height: In[float, "> 0"] = 0.5  # m, head height
     early_termination: bool = True
     head_body: str | None = None  # the body tested for falls; None: the skeleton's head joint
 

@@ -38,6 +38,7 @@ from motok.control.mdp.terminations import end_of_step
 from motok.control.tasks.episodes import Act, Step, play_episodes
 from motok.control.tasks.registry import TaskSpec
 from motok.errors import UserError
+from motok.ranges import In
 from motok.sim.env import HumanoidEnv
 from motok.sim.reference import ReferenceLibrary
 
@@ -46,17 +47,17 @@ MOVING = 0.2  # m/s: slower than this, the direction of travel is noise (the dir
 
 @dataclass
 class SteeringTaskConfig:
-    episode_seconds: float = 10.0  # an episode's length (several commands)
-    min_command_seconds: float = 2.0  # a command lasts between these (uniform) before the next
-    max_command_seconds: float = 5.0
-    min_speed: float = 0.5  # m/s, the commanded speed is uniform between these
-    max_speed: float = 1.5  # the data's walks: about 1.1 m/s
-    k_vel: float = 0.25  # exp(-k_vel |v* - v|^2), (s/m)^2 (ASE's heading task: 0.25)
-    w_vel: float = 0.7  # weight of the velocity term
-    w_face: float = 0.3  # weight of the facing term max(0, cos(psi* - psi))
-    fall_height: float = 0.5  # m, head height below which the character has fallen
+    episode_seconds: In[float, "> 0"] = 10.0  # an episode's length (several commands)
+    min_command_seconds: In[float, "> 0"] = 2.0  # a command lasts between these (uniform) before the next
+    max_command_seconds: In[float, "> 0"] = 5.0
+    min_speed: In[float, ">= 0"] = 0.5  # m/s, the commanded speed is uniform between these
+    max_speed: In[float, ">= 0"] = 1.5  # the data's walks: about 1.1 m/s
+    k_vel: In[float, ">= 0"] = 0.25  # exp(-k_vel |v* - v|^2), (s/m)^2 (ASE's heading task: 0.25)
+    w_vel: In[float, ">= 0"] = 0.7  # weight of the velocity term
+    w_face: In[float, ">= 0"] = 0.3  # weight of the facing term max(0, cos(psi* - psi))
+    fall_height: In[float, "> 0"] = 0.5  # m, head height below which the character has fallen
     early_termination: bool = True  # a fall ends the episode
-    settle_seconds: float = 1.0  # evaluation: errors count from this long after a command appeared
+    settle_seconds: In[float, ">= 0"] = 1.0  # evaluation: errors count from this long after a command appeared
 
     def __post_init__(self):
         for name in ("episode_seconds", "min_command_seconds", "fall_height"):

@@ -206,8 +206,8 @@ def test_the_command_writes_the_loop_and_eval_reads_it(tree, controllers, tmp_pa
     (["--then", "0.5s b"], "--then 0.5: expected a positive multiple of the token duration 0.2 s"),
     (["--then", "soon b"], "--then 'soon b': expected a time in seconds, then the text"),
     (["--replan-every", "0.3"], "--replan-every 0.3: expected a positive multiple of the token duration 0.2 s"),
-    (["--replan-every", "0"], "--replan-every 0: expected a positive multiple"),
-    (["--replan-every", "-0.4"], "--replan-every -0.4: expected a positive multiple"),
+    (["--replan-every", "0"], "--replan-every 0.0 must be > 0"),  # the option's range, at parse time
+    (["--replan-every", "-0.4"], "--replan-every -0.4 must be > 0"),
     (["--text", "two", "--then", "0.8s b"], "--then continues one --text; 2 texts were given"),
 ])
 def test_bad_closed_loop_options_fail_in_one_line_before_any_work(tree, controllers, tmp_path, extra, message):

@@ -33,7 +33,10 @@ results = Console()
 def fail(msg: str, code: int = 2):
     """Print ``error: msg`` on stderr and exit with ``code`` (2: the user has something to fix)."""
     from rich.markup import escape
+
+    from motok.cli.output_files import release_claims
     progress.console.print(f"[bold red]error:[/] {escape(msg)}", highlight=False, soft_wrap=True)
+    release_claims()  # nothing is written after a refusal, not even a lock file
     raise typer.Exit(code)
 
 

@@ -50,11 +50,24 @@ def claim_output_file(ctx, path, label: str) -> None:
 
     def release():
         lock.release()
-        _claimed.remove(path)
+        if path in _claimed:
+            _claimed.remove(path)
+        if release in _releases:
+            _releases.remove(release)
+    _releases.append(release)
     ctx.call_on_close(release)
 
 
 _claimed: list[Path] = []  # the output files of the running command, to name in a fault
+_releases: list = []  # their locks' releases, also for a refusal while the options are still parsed
+
+
+def release_claims() -> None:
+    """Release the locks this command took on its outputs. Click runs a context's close callbacks
+    only once the command line is parsed, so a later option refused while parsing would otherwise
+    leave ``.NAME.lock`` files beside outputs that were never written."""
+    for release in list(_releases):
+        release()
 
 
 def disk_full_message(e: BaseException) -> str | None:

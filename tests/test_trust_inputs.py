@@ -70,17 +70,22 @@ def test_preprocess_workers_die_with_their_parent_after_kill_9(bandai_dir, tmp_p
 def test_ctrl_c_during_preprocess_is_one_line_from_the_parent_and_leaves_no_file(bandai_dir, tmp_path):
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1"}
     out = tmp_path / "set1.h5"
-    # Its own session, so that the SIGINT goes to the whole group, as a terminal's Ctrl-C does.
-    p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", "-q", "preprocess", "-d",
-                          str(bandai_dir / "bandai-namco-1.tar.xz"), "--annotations", "none", "--skeleton", "bandai21",
-                          "-j", "2", "-o", str(out)], cwd=REPO, env=env, start_new_session=True,
-                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while len(_children(p.pid)) < 2 and p.poll() is None and time.time() < deadline:
-        time.sleep(0.05)
-    time.sleep(1.0)
-    os.killpg(p.pid, signal.SIGINT)
-    _, err = p.communicate(timeout=60)
+    for _ in range(3):  # a loaded machine can finish (or not yet start) the workers around the signal: try again
+        # Its own session, so that the SIGINT goes to the whole group, as a terminal's Ctrl-C does.
+        p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", "-q", "preprocess", "-d",
+                              str(bandai_dir / "bandai-namco-1.tar.xz"), "--annotations", "none", "--skeleton",
+                              "bandai21", "-j", "2", "-o", str(out)], cwd=REPO, env=env, start_new_session=True,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        deadline = time.time() + 120
+        while len(_children(p.pid)) < 2 and p.poll() is None and time.time() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        running = p.poll() is None
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        if running and p.returncode == 130:
+            break
+        out.unlink(missing_ok=True)
     assert p.returncode == 130, err
     assert err.strip().splitlines() == [err.strip()] and err.startswith("error: interrupted"), err
     assert list(tmp_path.iterdir()) == []

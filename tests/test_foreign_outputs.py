@@ -34,8 +34,8 @@ def _ours(tmp_path):
     return out
 
 
-def test_every_output_type_tells_motoks_files_from_foreign_ones(tmp_path):
-    for suffix, path in _ours(tmp_path).items():
+def test_every_output_type_tells_motoks_files_from_foreign_ones(hum_path, tmp_path):
+    for suffix, path in {**_ours(tmp_path), ".xml": hum_path}.items():
         assert foreign_file(path) is None, (suffix, path.read_bytes()[:200])
         foreign = tmp_path / f"foreign{suffix}"
         foreign.write_bytes(b'{"title": "my notes"}\n' if suffix == ".json" else b"# my notes\n")
@@ -61,3 +61,17 @@ def test_commands_refuse_a_foreign_video_picture_bvh_and_report_in_one_line(smal
         for _ in range(2):
             r = runner.invoke(app, ["-q", *cases[0], str(tmp_path / name)])
             assert r.exit_code == 0, r.output
+
+
+def test_the_reports_written_beside_an_output_are_checked_too(tmp_path):
+    import pytest
+
+    from motok.cli.output_files import refuse_foreign
+    from motok.control.track import report_path
+    from motok.errors import UserError
+    beside = report_path(tmp_path / "walk_sim.h5")  # control track's walk_sim.track.json
+    beside.write_text('{"mine": true}\n')
+    with pytest.raises(UserError, match=f"^-o {beside} exists and is not a motok report"):
+        refuse_foreign(beside, "-o")
+    beside.write_text('{"kind": "control-track", "schema_version": 1}\n')
+    refuse_foreign(beside, "-o")  # motok's own report: replaced

@@ -335,7 +335,7 @@ def test_control_recipes_load_with_their_measured_choices():
         assert cfg.sampling.hard_fraction == 0.5 and cfg.sampling.every > 0 and cfg.eval_per_group == 2
     assert small.sampling.hard_fraction == 0.0 and set2.update_threads == 2
     # the same world but for the PD-target filter the whole-dataset recipe trains through (docs/control/expert.md)
-    assert set2.env.target_filter == 0.5 and replace(set2.env, target_filter=None) == small.env
+    assert set2.env.target_filter == 0.3 and replace(set2.env, target_filter=None) == small.env
     for cfg in (small, paper, set2):
         assert cfg.action.base == "reference" and cfg.task.termination == "mean" and cfg.eval_every > 0
         assert (cfg.w_im, cfg.w_style) == (0.5, 0.5) and cfg.ppo.gamma == 0.99 and cfg.ppo.lam == 0.95

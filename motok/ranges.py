@@ -155,3 +155,32 @@ def check_config(cfg, where: str = "") -> list[str]:
                 if (why := rng.problem(x)) is not None:
                     problems.append(f"{name}{f'[{i}]' if isinstance(v, (list, tuple)) else ''}: {x!r} {why}")
     return problems
+
+
+def checked(**within: str):
+    """Decorate a library entry point so that the numeric arguments named in ``within`` are checked
+    when it is called, against the range a command-line option would name (a spec, ``"> 0"``, or
+    a config field, as :func:`motok.cli.common.number_option` takes): a caller from Python gets
+    the same refusal as one from the shell, a :class:`motok.errors.UserError` naming the function,
+    the argument, the value and the range, before any work. ``None`` (left to the run or the
+    recipe) is not checked; neither are defaults, which are in range."""
+    import inspect
+
+    def wrap(fn):
+        sig = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def call(*args, **kw):
+            given = sig.bind_partial(*args, **kw).arguments
+            for name, spec in within.items():
+                v = given.get(name)
+                if v is None:
+                    continue
+                if type(v).__module__ == "numpy" and getattr(v, "ndim", None) == 0:
+                    v = v.item()  # a numpy scalar is the number it holds
+                if (why := range_of(spec).problem(v)) is not None:
+                    from motok.errors import UserError
+                    raise UserError(f"{fn.__name__}: {name}={v!r} {why}")
+            return fn(*args, **kw)
+        return call
+    return wrap

@@ -158,8 +158,10 @@ def test_a_warm_start_begins_from_the_other_runs_weights_and_not_its_counters(hu
         train(wide, tmp_path / "bad", hum, walk_lib, init=tmp_path / "first", until=0)
 
 
-def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(hum, walk_lib, tmp_path):
+def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(hum, walk_lib, tmp_path, monkeypatch,
+                                                                                 capsys):
     import signal
+    import sys
 
     from motok.control.rl import runner
     from motok.control.expert.model import KIND
@@ -179,8 +181,15 @@ def test_sigterm_stops_a_training_at_its_next_checkpoint_and_it_resumes_exactly(
         tr.step = step_and_signal
         return tr
 
+    argv = ["motok", "control", "expert", "train", "-d", "walk.h5", "-o", str(tmp_path / "stopped"), "--force"]
+    monkeypatch.setattr(sys, "argv", argv)
     out = runner.train(make, cfg, tmp_path / "stopped", hum, kind=KIND)
     assert out["iterations"] == 4 and signal.getsignal(signal.SIGTERM) is before
+    # it says where it stopped and the exact command that continues it, as Ctrl-C does
+    said = " ".join(capsys.readouterr().err.split())
+    assert f"stopped at iteration 4 on request (SIGTERM); last checkpoint: iteration 4 in {tmp_path / 'stopped'}" in said
+    assert (f"continue exactly from there with: motok control expert train -d walk.h5 -o {tmp_path / 'stopped'} "
+            f"--resume") in said, said
     assert json.loads((tmp_path / "stopped" / "bundle.json").read_text())["extra"]["iteration"] == 4
     train(cfg, tmp_path / "stopped", hum, walk_lib, resume=True)
     train(cfg, tmp_path / "straight", hum, walk_lib)

@@ -310,3 +310,20 @@ def test_the_issue_cases_are_one_line_errors(args, says, tmp_path, monkeypatch):
     lines = r.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0], r.output
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda: __import__("motok.control.expert.evaluate", fromlist=["x"]).evaluate_run("no-run", distance=math.nan),
+     "evaluate_run: distance=nan must be a finite number > 0"),
+    (lambda: __import__("motok.control.expert.evaluate", fromlist=["x"]).evaluate_run("no-run", distance=-1.0),
+     "evaluate_run: distance=-1.0 must be > 0"),
+    (lambda: motok.generate(None, "a person walks", temperature=math.nan),
+     "generate: temperature=nan must be a finite number > 0"),
+    (lambda: motok.generate(None, "a person walks", num_samples=-1), "generate: num_samples=-1 must be >= 1"),
+    (lambda: motok.generate(None, "a person walks", seconds=-2.0), "generate: seconds=-2.0 must be > 0"),
+])
+def test_library_entry_points_refuse_numbers_out_of_range(call, says):
+    # the same ranges as the options, checked before anything is read (there is no run "no-run")
+    with pytest.raises(MotokError) as e:
+        call()
+    assert str(e.value) == says

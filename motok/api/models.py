@@ -21,6 +21,7 @@ import numpy as np
 
 from motok.api.motion import Motion, as_clips, from_clips, motions
 from motok.errors import UserError
+from motok.ranges import checked  # numbers in range for callers from Python too
 
 if TYPE_CHECKING:
     from motok.control.priors.load import Controller
@@ -56,6 +57,7 @@ def load_tokenizer(path) -> "Tokenizer":
     return open_tokenizer(path)
 
 
+@checked(snap="motok.gpt.model:TrainConfig.snap")
 def load_gpt(path, *, tokenizer=None, allow_mismatch: bool = False, snap: int | None = None) -> "Sampler":
     """A GPT run (``motok gpt train``) with the tokenizer that decodes its codes (its own, or the
     run at ``tokenizer``; another one needs ``allow_mismatch``) and its caption cache, for
@@ -65,6 +67,7 @@ def load_gpt(path, *, tokenizer=None, allow_mismatch: bool = False, snap: int | 
     return load_sampler(path, tokenizer, allow_mismatch, snap=snap)
 
 
+@checked(codebooks=">= 1")
 def load_controller(path, *, codebooks: int | None = None) -> "Controller":
     """An expert run (``motok control expert train``) or a distilled prior (``motok control
     distill``, its posterior and decoder acting; ``codebooks``: its first M only), for
@@ -108,6 +111,8 @@ def load_policy(path) -> TaskPolicy:
     return TaskPolicy(Path(path), *load_task_run(path))
 
 
+@checked(num_samples=">= 1", seed=">= 0", temperature="> 0", top_k=">= 1", top_p="(0, 1]", seconds="> 0",
+         guidance="motok.gpt.model:TrainConfig.guidance")
 def generate(gpt: "Sampler", texts: str | Iterable[str], *, num_samples: int = 1, seed: int = 0,
              temperature: float = 1.0, top_k: int | None = None, top_p: float | None = None, argmax: bool = False,
              seconds: float | None = None, guidance: float | None = None) -> list[Motion]:
@@ -124,6 +129,7 @@ def generate(gpt: "Sampler", texts: str | Iterable[str], *, num_samples: int = 1
     return [Motion(c, skeleton, tok.fps, offsets, tok.legacy) for c in made.clips]
 
 
+@checked(codebooks=">= 1")
 def encode(tokenizer: "Tokenizer", motion: Motion, *, codebooks: int | None = None) -> np.ndarray:
     """The motion's codes ``(L, M)`` (``M`` codebooks, all by default), one per ``rate`` frames;
     the trailing frames that fill no code are dropped, as ``motok tokenize encode`` does."""
@@ -136,6 +142,7 @@ def encode(tokenizer: "Tokenizer", motion: Motion, *, codebooks: int | None = No
     return tokenizer.encode(m.features, check_codebooks(tokenizer.model, codebooks))
 
 
+@checked(codebooks=">= 1")
 def decode(tokenizer: "Tokenizer", codes, *, codebooks: int | None = None, name: str = "decoded",
            caption: str | None = None) -> Motion:
     """Codes ``(L,)`` or ``(L, N)`` back to a motion of ``L * rate`` frames on the tokenizer's
@@ -168,6 +175,7 @@ class TrackResult:
     per_clip: dict[str, dict]
 
 
+@checked(batch=">= 1")
 def track(controller: "Controller", motion: Motion | Iterable[Motion], *, render=None,
           batch: int = 256) -> TrackResult:
     """Track each motion in MuJoCo with ``controller`` (:func:`load_controller`) from its first
@@ -179,6 +187,7 @@ def track(controller: "Controller", motion: Motion | Iterable[Motion], *, render
     return TrackResult(from_clips(done.motion), done.summary, done.per_clip)
 
 
+@checked(episodes=">= 1", seed=">= 0")
 def evaluate_task(policy: TaskPolicy, *, episodes: int = 16, seed: int = 0, render=None) -> dict:
     """The task's own evaluation of ``policy`` (``motok control eval --task``) on ``episodes``
     episodes from its own clips: targets reached, falls, time, as the task reports them;

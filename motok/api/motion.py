@@ -18,6 +18,7 @@ import numpy as np
 
 from motok.data.dataset import Clip
 from motok.errors import UserError
+from motok.ranges import checked  # numbers in range for callers from Python too
 from motok.skeleton import Skeleton
 
 
@@ -130,6 +131,7 @@ def save_motions(motion: Motion | Iterable[Motion], path) -> Path:
     return Path(clips.write(path, prov))
 
 
+@checked(max_frames=">= 1")
 def render_motion(motion: Motion, path, *, max_frames: int | None = None) -> Path:
     """Draw the motion as ``motok render`` does: a stick figure to ``path`` (.gif, .mp4, or
     .png for a contact sheet), titled with its caption. Returns the path."""
@@ -139,6 +141,7 @@ def render_motion(motion: Motion, path, *, max_frames: int | None = None) -> Pat
     return render_clip(m.clip, m.skeleton, path, m.fps, max_frames=max_frames)
 
 
+@checked(max_frames=">= 1")
 def render_frames(motion: Motion, *, max_frames: int | None = None,
                   size: tuple[int, int] = (480, 480)) -> np.ndarray:
     """The frames :func:`render_motion` draws, as a ``(T, H, W, 3) uint8`` array (for a

@@ -138,6 +138,10 @@ def sample(
         from motok.control.closed_loop.loop import closed_loop as _closed_loop
         run(check_options, texts=texts, then=then, data=data, replan_every=replan_every, closed_loop=closed_loop,
             simulated=prior is not None or expert is not None)
+        from motok.cli.output_files import refuse_foreign
+        from motok.control.closed_loop.files import plans_path, report_path
+        for beside in (plans_path(out), report_path(out)):  # the files written beside the motion
+            run(refuse_foreign, beside, "-o")
         every = (REPLAN_EVERY if replan_every is None else replan_every) if closed_loop else None
         _report_loop(run(_closed_loop, gpt, out, texts=texts, then=then, data=data, replan_every=every, prior=prior,
                          expert=expert, codebooks=codebooks, **opts), as_json)

@@ -1,5 +1,6 @@
-"""Output files of any command: an existing HDF5 file that is not a motok artifact is never
-replaced, and one writer at a time holds a file (the lock of :mod:`motok.runlock`, beside it).
+"""Output files of any command: an existing file that motok did not write is never replaced
+(how motok knows its own: :data:`OWN`), and one writer at a time holds a file (the lock of
+:mod:`motok.runlock`, beside it).
 Also the one line for a full disk met while writing one. :mod:`motok.cli.common` calls these
 from its output options and from :func:`motok.cli.common.run`; nothing here imports the command
 line, and importing it stays cheap.
@@ -10,28 +11,88 @@ from __future__ import annotations
 from pathlib import Path
 
 from motok.errors import UserError
+from motok.marks import MARK, MD_MARK
 
-H5_SUFFIXES = (".h5", ".hdf5")
+SCAN = 1 << 20  # a mark sits in the header (PNG, GIF) or the index at the end (MP4): read no more
 
 
-def foreign_file(path: Path) -> str | None:
-    """Why the existing file ``path`` must not be replaced, or None: an HDF5 output must be a
-    motok artifact (its root ``kind``). Other outputs (videos, images, BVH, JSON reports) carry
-    no mark of who wrote them and are replaced, atomically, as before."""
-    if not path.is_file() or path.suffix.lower() not in H5_SUFFIXES:
-        return None
+def _marked(path: Path) -> bool:
+    with open(path, "rb") as f:
+        head = f.read(SCAN)
+        size = f.seek(0, 2)
+        f.seek(max(size - SCAN, 0))
+        tail = f.read(SCAN)
+    mark = MARK.encode()
+    return mark in head or mark in tail
+
+
+def _json_report(path: Path) -> bool:
+    import json
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(obj, dict) and ("kind" in obj or "provenance" in obj)
+
+
+def _h5_artifact(path: Path) -> bool:
     from motok.artifacts import KINDS
     try:
         import h5py
         with h5py.File(path, "r") as f:
             kind = f.attrs.get("kind")
     except OSError:
-        kind = None
-    kind = kind.decode() if isinstance(kind, bytes) else kind
-    if kind in KINDS:
+        return False
+    return (kind.decode() if isinstance(kind, bytes) else kind) in KINDS
+
+
+def _md_report(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.readline().strip() == MD_MARK.encode()
+
+
+def _mjcf(path: Path) -> bool:
+    # motok's MJCF carries its build record in a <custom><text> element named motok_*
+    with open(path, "rb") as f:
+        return b'name="motok_' in f.read(SCAN * 4)
+
+
+# How motok knows a file it wrote, by suffix. A suffix not here (BVH: Blender's importer reads
+# nothing before HIERARCHY nor after the frames, so a BVH has no room for a writer's mark) cannot
+# tell, and an existing file of it is never replaced: the user moves it.
+OWN = {".h5": _h5_artifact, ".hdf5": _h5_artifact, ".json": _json_report, ".md": _md_report,
+       ".png": _marked, ".gif": _marked, ".mp4": _marked, ".xml": _mjcf}
+WHAT = {".h5": "a motok artifact", ".hdf5": "a motok artifact", ".json": "a motok report",
+        ".md": "a motok report", ".xml": "a motok MJCF"}
+
+
+def foreign_file(path: Path) -> str | None:
+    """Why the existing file ``path`` must not be replaced, or None: motok replaces only a file
+    it recognises as its own (:data:`OWN`); an output of another suffix is replaced, atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if not path.is_file() or (suffix not in OWN and suffix != ".bvh"):
         return None
-    return (f"{path} exists and is not a motok artifact; motok never replaces a file it did not write "
+    if suffix == ".bvh":
+        return (f"{path} exists and a BVH has no room for a mark of its writer, so motok cannot tell "
+                f"whether it wrote it and never replaces one (not even with --force): delete it or choose "
+                f"another output")
+    try:
+        if OWN[suffix](path):
+            return None
+    except OSError:
+        pass
+    what = WHAT.get(suffix, f"a {suffix[1:].upper()} that motok wrote")
+    return (f"{path} exists and is not {what}; motok never replaces a file it did not write "
             f"(not even with --force): move it or choose another output")
+
+
+def refuse_foreign(path, label: str) -> None:
+    """Refuse a foreign file where a command writes a file named after its output (``-o
+    walk.h5`` also writes ``walk.track.json``), before any work."""
+    why = foreign_file(Path(path))
+    if why:
+        raise UserError(f"{label} {why}")
 
 
 def claim_output_file(ctx, path, label: str) -> None:

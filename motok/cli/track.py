@@ -31,8 +31,10 @@ def track_cmd(
 ):
     """Track every clip from its first frame; write the simulated bodies at the motion's frame rate."""
     from motok.control.priors.load import load_controller
-    from motok.control.track import track
+    from motok.cli.output_files import refuse_foreign
+    from motok.control.track import report_path, track
 
+    run(refuse_foreign, report_path(out), "-o")  # the report written beside the motion
     res = run(lambda: track(load_controller(expert, prior, codebooks), motion, out, clips=clips, split=split,
                                render=render))
     per = res.pop("per_clip")

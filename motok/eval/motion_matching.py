@@ -285,7 +285,8 @@ def save(rep: dict, paths) -> None:
             write_json(p, rep)
         else:
             with atomic_path(p) as tmp:
-                tmp.write_text(markdown(rep))
+                from motok.marks import MD_MARK  # how motok knows its own report again
+                tmp.write_text(MD_MARK + "\n" + markdown(rep))
 
 
 COLUMNS = (("transitions", "transitions", "{:d}"), ("distance_mean", "distance ↓", "{:.3f}"),

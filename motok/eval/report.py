@@ -81,7 +81,7 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
     if cfg.physical:
         for res, row in zip(results, rows):
             res["physical"] = physical_of(row, info["fps"], info["feet"])
-    return {"protocol": "Guo et al. 2022 / T2M-GPT Table 1", "config": dict(cfg.__dict__),
+    return {"kind": "t2m-report", "schema_version": 1, "protocol": "Guo et al. 2022 / T2M-GPT Table 1", "config": dict(cfg.__dict__),
             "evaluator": str(evaluator), "evaluator_sha256": ev.meta.get("model_sha256"),
             "text_encoder": ev_text, "data": str(data), "split": cfg.split, "captions": cfg.captions,
             "caption_overlap": overlap, "label_ceiling": label_ceiling(ref.labels or [], cfg.batch, cfg.top_k),
@@ -159,7 +159,8 @@ def save_report(report: dict, json_path: Path | None = None, md_path: Path | Non
         write_json(json_path, report)
     if md_path is not None:
         with atomic_path(md_path) as tmp:
-            tmp.write_text(markdown(report) + "\n")
+            from motok.marks import MD_MARK  # how motok knows its own report again
+            tmp.write_text(MD_MARK + "\n" + markdown(report) + "\n")
 
 
 def rich_table(report: dict):

@@ -113,7 +113,8 @@ def plot_curves(jsonl_path_or_records, out_png: str | os.PathLike, keys: Sequenc
                   missing_ok=missing_ok, kind=kind)
     out = Path(out_png)
     with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
+        from motok.marks import MARK  # how motok knows its own picture again
+        fig.savefig(tmp, dpi=100, format="png", metadata={"Comment": MARK})
     return out
 
 

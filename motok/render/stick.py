@@ -231,7 +231,11 @@ def _write_sheet(scene: _Scene, path: str, n: int, title: str | None) -> None:
         sheet.paste(band, ((img.width - band.width) // 2, 0))
         sheet.paste(img, (0, band.height))
         img = sheet
-    img.save(path, format="PNG", optimize=False)
+    from PIL.PngImagePlugin import PngInfo
+    from motok.marks import MARK  # how motok knows its own picture again
+    info = PngInfo()
+    info.add_text("Comment", MARK)
+    img.save(path, format="PNG", optimize=False, pnginfo=info)
 
 
 def render_motion(joints, parents, out_path, *, fps: float = 20.0, title: str | None = None,

@@ -12,6 +12,7 @@ from PIL import Image
 
 from motok.atomic import atomic_path
 from motok.errors import UserError
+from motok.marks import MARK  # how motok knows its own video again
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 
@@ -30,7 +31,7 @@ def write_gif(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: float)
     # GIF delays are whole centiseconds: round the cumulative time so the mean rate is exact.
     ticks = np.round(np.arange(len(images) + 1) * 100.0 / fps)
     durations = [int(d) * 10 for d in np.maximum(np.diff(ticks), 1)]
-    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], loop=0,
+    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], loop=0, comment=MARK.encode(),
                    duration=durations if len(images) > 1 else durations[0], optimize=False)
 
 
@@ -39,7 +40,8 @@ def write_mp4(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: float)
     import imageio.v2 as imageio
 
     writer = imageio.get_writer(str(path), format="FFMPEG", mode="I", fps=fps, codec="libx264",
-                                pixelformat="yuv420p", macro_block_size=1, quality=7, ffmpeg_log_level="error")
+                                pixelformat="yuv420p", macro_block_size=1, quality=7, ffmpeg_log_level="error",
+                                output_params=["-metadata", f"comment={MARK}"])
     try:
         for frame in frames:
             writer.append_data(frame)

@@ -11,8 +11,10 @@ from motok.atomic import write_json
 from motok.control import runs
 from motok.control.expert.model import load_expert
 from motok.control.tasks.imitation import by_group, evaluate
+from motok.ranges import checked  # numbers in range for callers from Python too
 
 
+@checked(distance="motok.control.tasks.imitation:ImitationTaskConfig.termination_distance")
 def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None = None, render=None,
                  termination: str | None = None, distance: float | None = None, device: str | None = None) -> dict:
     """``motok control expert eval``: :func:`evaluate` the checkpoint in ``run`` on its training

@@ -21,6 +21,7 @@ from motok.control.rl.rollout import as_tensor
 from motok.control.tasks import registry
 from motok.control.tasks.imitation import policy_device
 from motok.errors import UserError
+from motok.ranges import checked  # numbers in range for callers from Python too
 from motok.sim.env import SimConfig
 
 
@@ -76,6 +77,7 @@ def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
     return f"{path} ({backend})"
 
 
+@checked(episodes=">= 1", seed=">= 0")
 def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
                  split: str | None = None, render=None, device: str | None = None, task: str | None = None) -> dict:
     """``motok control eval --task T --policy RUN``: the task's evaluation of the policy in ``run``
@@ -95,6 +97,7 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
     return res
 
 
+@checked(episodes=">= 1", seed=">= 0")
 def evaluate_loaded(run, loaded: tuple, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
                     split: str | None = None, render=None, device: str | None = None,
                     task: str | None = None) -> tuple[dict, Path | str]:

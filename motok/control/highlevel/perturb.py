@@ -35,7 +35,7 @@ import numpy as np
 from motok.control.tasks.episodes import episode_quota
 from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
-from motok.ranges import In
+from motok.ranges import In, checked  # checked: numbers in range for callers from Python too
 from motok.sim.balls import ball_states, detect_hits, find_balls, humanoid_capsules, launch_balls, park_balls, set_balls
 
 
@@ -238,6 +238,7 @@ def perturb(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np.ndarray], e
     return out
 
 
+@checked(episodes=">= 1", seed=">= 0")
 def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: PerturbConfig | None = None) -> dict:
     """``motok control perturb --policy RUN``: the thrown-ball test of a trained task policy, zero-shot:
     the same policy, prior and task, on the run's humanoid with a pool of balls added

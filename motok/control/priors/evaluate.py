@@ -17,9 +17,11 @@ from motok.control.priors.model import load_prior
 from motok.control.tasks.imitation import by_group, evaluate
 from motok.control.tasks.registry import IMITATION
 from motok.errors import UserError
+from motok.ranges import checked  # numbers in range for callers from Python too
 
 
 
+@checked(distance="motok.control.tasks.imitation:ImitationTaskConfig.termination_distance", codebooks=">= 1")
 def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None = None, split: str | None = None,
                    codebooks: int | None = None, render=None, termination: str | None = None,
                    distance: float | None = None, device: str | None = None) -> dict:

@@ -152,6 +152,26 @@ class _StopSignal:
 stop_signal = _StopSignal()
 
 
+def stop_message(run: Path, iteration: int) -> str:
+    """What a training stopped by SIGTERM says: where it stopped and, run from the command line,
+    the exact command that continues it (the one the Ctrl-C message prints)."""
+    import sys
+
+    from motok.cli.outputs import resume_command
+    from motok.runfolder import final_path
+    where = f"stopped at iteration {iteration} on request (SIGTERM); last checkpoint: iteration {iteration} in " \
+            f"{final_path(run)}"
+    if Path(sys.argv[0]).name == "motok":
+        return f"{where}; continue exactly from there with: {resume_command()}"
+    return f"{where}; continue exactly from there with the same call and resume=True"  # called from Python
+
+
+def _stopped_on_request(run: Path, iteration: int) -> None:
+    from rich.markup import escape
+    # not quiet-gated, as Ctrl-C's is not: it is how the user learns how to go on
+    _progress.console.print(escape(stop_message(run, iteration)), highlight=False, soft_wrap=True)
+
+
 def _note_inexact(run: Path, start: int, stop: int, cfg, resumed: bool, main: bool) -> None:
     """Say when a run will not repeat an uninterrupted one to the digit, or has nothing to do: every
     environment restarts at a checkpoint, so a checkpoint between save_every multiples (an --until
@@ -266,7 +286,7 @@ def _train(make_trainer, cfg, run: Path, hum, kind, resume, until, data, command
                 save()
                 wrote = True
                 if any(gather(stop_signal.requested, d)):  # every rank stops at the same checkpoint
-                    _progress.info(f"stopped at iteration {tr.iteration} on request (SIGTERM); --resume continues")
+                    _stopped_on_request(run, tr.iteration)
                     break
                 tr.start_segment()
     # Decided from state every rank shares: a file check could race rank 0's write and leave one

@@ -12,7 +12,7 @@ TORCH  := torch==2.13.0
 # Optional groups to install beside dev; CI adds gpu so the MuJoCo Warp stepper's tests run on Warp's CPU device.
 EXTRAS ?= dev
 
-.PHONY: install demo demo-physics test bench clean
+.PHONY: install demo demo-physics test bench mutants clean
 
 $(STAMP): pyproject.toml constraints.txt weights.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -95,5 +95,15 @@ endif
 bench: install
 	$(BIN)/python benchmarks/preprocess.py
 
+# Mutation testing (not in CI; long: about 650 mutants): mutmut edits rvq.py, the prior's model.py and the
+# distillation loss one change at a time and runs the fast tests that pin them ([tool.mutmut] in
+# pyproject.toml); `$(BIN)/mutmut results` lists the survivors, `$(BIN)/mutmut show NAME` one of them.
+# The copy lives one folder deeper, so the data root is resolved here, from the real tree.
+mutants: install
+	MOTOK_DATA="$${MOTOK_DATA:-$$($(BIN)/python -c 'from motok.data.root import resolve_data_root as r; print(r())')}" \
+	$(BIN)/mutmut run "motok.quantize.rvq.*" "motok.control.priors.model.*" \
+		"motok.control.priors.distill.x_distill_loss*" "motok.control.priors.distill.x_latent_change*"
+	$(BIN)/mutmut results
+
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache mutants

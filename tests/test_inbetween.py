@@ -10,7 +10,7 @@ import pytest
 
 from motok.control.mdp.keyframes import (InbetweenRewardConfig, inbetween_errors, inbetween_reward, keyframe_goal,
                                          next_keyframe, sample_keyframes, time_encoding)
-from motok.control.tasks.episodes import EpisodeErrors
+from motok.control.tasks.episodes import EpisodeErrors, summary
 from motok.control.tasks.inbetween import evaluate_inbetween
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.inbetween import InbetweenTask, InbetweenTaskConfig
@@ -225,6 +225,15 @@ def test_episode_errors_hand_values():
     assert np.allclose(out["drift"]["keyframe_g_mpjpe_mm"], (3 + 6) / 2)
 
 
+def test_the_episode_summary_on_hand_values():
+    # Per metric: mean and population std over the episodes where it was measured (NaN: no frame).
+    rows = np.array([[1.0, np.nan], [3.0, 2.0], [np.nan, 2.0]])
+    res = summary(["a", "b"], rows, np.array([True, False, True]), np.array([1.0, 2.0, 3.0]))
+    assert res["episodes"] == 3 and res["success_rate"] == pytest.approx(2 / 3) and res["seconds_mean"] == 2.0
+    assert (res["a_mean"], res["a_std"], res["b_mean"], res["b_std"]) == (2.0, 1.0, 2.0, 0.0)
+    assert res["per_episode"]["success"] == [True, False, True] and res["per_episode"]["a"][:2] == [1.0, 3.0]
+
+
 def test_evaluate_inbetween_on_pd_tracking(hum, lib):
     mdp = _mdp(hum, lib, 2, seed=1)
     res = evaluate_inbetween(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), 3)
@@ -232,7 +241,9 @@ def test_evaluate_inbetween_on_pd_tracking(hum, lib):
     assert res["success_rate"] == 1.0 and res["seconds_mean"] == pytest.approx(17 / 30)
     for m in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"):
         for pre in ("", "keyframe_"):
-            assert np.isfinite(res[f"{pre}{m}_mean"]) and res[f"{pre}{m}_std"] >= 0
+            # the summary over episodes is the population mean and std of the per-episode values
+            v = np.asarray(res["per_episode"][f"{pre}{m}"])
+            assert res[f"{pre}{m}_mean"] == pytest.approx(v.mean()) and res[f"{pre}{m}_std"] == pytest.approx(v.std())
     assert 0 < res["mpjpe_mm_mean"] < 150 and res["g_mpjpe_mm_mean"] >= res["mpjpe_mm_mean"] * 0.5
     assert mdp.task.num_keyframes == 3  # restored after evaluating with eval_keyframes
     with pytest.raises(UserError, match="episodes"):

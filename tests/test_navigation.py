@@ -275,7 +275,7 @@ def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
         # before would break it), and a target is reached exactly when it came within the radius
         assert (cl <= st + 1e-9).all() and (st - cl <= 1.0).all() and (cl >= 0).all()
         assert int((cl < 0.5).sum()) == round(res["reached_share"] * res["targets"])
-        assert 0.0 <= res["approach_share"] <= 1.0
+        assert res["approach_share"] == pytest.approx(np.mean(1 - cl / st))  # the mean share of the distance closed
     with pytest.raises(UserError, match="episodes"):
         run(0)
 

@@ -320,7 +320,9 @@ def test_control_distill_command(small_dataset, tiny_expert, tmp_path, monkeypat
     assert r.exit_code == 0, r.output
     res = json.loads((out / "eval_m1.json").read_text())
     o = res["overall"]
-    assert res["kind"] == "control-prior-eval" and o["clips"] == 2 and 0.0 <= o["success_rate"] <= 1.0
+    assert res["kind"] == "control-prior-eval" and o["clips"] == 2
+    # two clips, one episode each: the overall rate is the share of the clips that succeeded
+    assert o["success_rate"] == np.mean([bool(v["success"]) for v in res["clips"].values()])
     assert all(v["seconds"] > 0 for v in res["clips"].values()) and res["checkpoint"]["codebooks"] == 1
     assert res["checkpoint"]["prior"]["kind"] == "hybrid" and o["g_mpjpe_mm"] > 0
     for args, says in ((["--task", "no-such-task"], "--task must be one of"), (["--codebooks", "3"], "--codebooks must be in 1..2")):

@@ -25,7 +25,9 @@ import datetime as _dt
 import errno
 import json
 import os
+import shlex
 import shutil
+import sys
 from pathlib import Path
 
 from motok.atomic import stale_temp_files, temp_name
@@ -39,6 +41,14 @@ _STAGED: dict[str, "RunClaim"] = {}  # absolute temporary path -> its claim
 
 class RunFolderError(UserError):
     pass
+
+
+def resume_command() -> str:
+    """The command line of this process with ``--resume`` instead of ``--force``."""
+    args = [a for a in sys.argv[1:] if a != "--force"]
+    if "--resume" not in args:
+        args.append("--resume")
+    return shlex.join(["motok", *args])
 
 
 def info(msg: str) -> None:

@@ -29,6 +29,13 @@ runner = CliRunner()
 
 # --------------------------------------------------------------------------- preprocess workers
 
+
+def _default_sigint() -> None:
+    """In the child, before it runs: Ctrl-C at its default, as a terminal's command has it. A
+    process started with SIGINT ignored keeps it ignored (Python installs KeyboardInterrupt only
+    when it is not), and a test runner may hand that on."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
 def _children(pid: int) -> list[int]:
     try:
         return [int(x) for x in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
@@ -46,7 +53,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads children from /proc (Linux)")
 def test_preprocess_workers_die_with_their_parent_after_kill_9(bandai_dir, tmp_path):
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1"}
-    p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", "-q", "preprocess", "-d",
+    p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", "-q", "preprocess", "-d",
                           str(bandai_dir / "bandai-namco-1.tar.xz"), "--annotations", "none", "--skeleton", "bandai21",
                           "-j", "2", "-o", str(tmp_path / "set1.h5")], cwd=REPO, env=env,
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -72,7 +79,7 @@ def test_ctrl_c_during_preprocess_is_one_line_from_the_parent_and_leaves_no_file
     out = tmp_path / "set1.h5"
     for _ in range(3):  # a loaded machine can finish (or not yet start) the workers around the signal: try again
         # Its own session, so that the SIGINT goes to the whole group, as a terminal's Ctrl-C does.
-        p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", "-q", "preprocess", "-d",
+        p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", "-q", "preprocess", "-d",
                               str(bandai_dir / "bandai-namco-1.tar.xz"), "--annotations", "none", "--skeleton",
                               "bandai21", "-j", "2", "-o", str(out)], cwd=REPO, env=env, start_new_session=True,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

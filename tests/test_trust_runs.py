@@ -27,6 +27,13 @@ TINY = ["model.width=32", "model.depth=1", "quantizer.dim=16", "quantizer.codebo
         "window=32", "log_every=2", "threads=1"]
 
 
+
+def _default_sigint() -> None:
+    """In the child, before it runs: Ctrl-C at its default, as a terminal's command has it. A
+    process started with SIGINT ignored keeps it ignored (Python installs KeyboardInterrupt only
+    when it is not), and a test runner may hand that on."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
 def sets(*extra: str) -> list[str]:
     return [a for s in TINY + list(extra) for a in ("--set", s)]
 
@@ -146,7 +153,7 @@ def test_ctrl_c_says_where_it_stopped_and_resume_ends_where_an_uninterrupted_run
     assert straight.returncode == 0, straight.stderr
     run = tmp_path / "run"
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1"}
-    p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", *args, "-o", str(run)], cwd=REPO, env=env,
+    p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", *args, "-o", str(run)], cwd=REPO, env=env,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not (run / "bundle.json").exists() and p.poll() is None and time.time() < deadline:
@@ -173,7 +180,7 @@ def test_ctrl_c_before_the_first_checkpoint_leaves_no_folder(small_dataset, tmp_
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1"}
     args = ["-q", "tokenize", "train", "-d", str(small_dataset), "-o", str(run),
             *sets("iterations=100000", "save_every=100000")]
-    p = subprocess.Popen([sys.executable, "-m", "motok.cli.main", *args], cwd=REPO, env=env,
+    p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", *args], cwd=REPO, env=env,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not any(tmp_path.glob(".run.*.part")) and p.poll() is None and time.time() < deadline:  # claimed

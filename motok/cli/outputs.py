@@ -12,7 +12,6 @@ torch): the checks run before any work.
 from __future__ import annotations
 
 import os
-import shlex
 import sys
 from pathlib import Path
 from typing import Callable
@@ -41,12 +40,7 @@ def _fail(msg: str, code: int = 2):
 
 # --------------------------------------------------------------------------- run folders
 
-def resume_command() -> str:
-    """The command line of this process with ``--resume`` instead of ``--force``."""
-    args = [a for a in sys.argv[1:] if a != "--force"]
-    if "--resume" not in args:
-        args.append("--resume")
-    return shlex.join(["motok", *args])
+from motok.runfolder import resume_command  # noqa: E402  (the trainers print it too, without the CLI)
 
 
 def _where(out: Path) -> str:

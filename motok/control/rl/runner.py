@@ -157,8 +157,7 @@ def stop_message(run: Path, iteration: int) -> str:
     the exact command that continues it (the one the Ctrl-C message prints)."""
     import sys
 
-    from motok.cli.outputs import resume_command
-    from motok.runfolder import final_path
+    from motok.runfolder import final_path, resume_command
     where = f"stopped at iteration {iteration} on request (SIGTERM); last checkpoint: iteration {iteration} in " \
             f"{final_path(run)}"
     if Path(sys.argv[0]).name == "motok":

@@ -12,7 +12,6 @@ torch): the checks run before any work.
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 from typing import Callable
 

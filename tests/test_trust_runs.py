@@ -9,6 +9,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -153,15 +154,17 @@ def test_ctrl_c_says_where_it_stopped_and_resume_ends_where_an_uninterrupted_run
     assert straight.returncode == 0, straight.stderr
     run = tmp_path / "run"
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1"}
-    p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", *args, "-o", str(run)], cwd=REPO, env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while not (run / "bundle.json").exists() and p.poll() is None and time.time() < deadline:
-        time.sleep(0.02)
-    p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=60)
-    if p.returncode == 0:
-        pytest.skip("the run finished before the interrupt arrived (a very fast machine)")
+    for _ in range(3):  # a very fast machine can finish the run before the interrupt arrives: start again
+        shutil.rmtree(run, ignore_errors=True)
+        p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", *args, "-o",
+                             str(run)], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.time() + 120
+        while not (run / "bundle.json").exists() and p.poll() is None and time.time() < deadline:
+            time.sleep(0.02)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        if p.returncode != 0:
+            break
     assert p.returncode == 130, err
     line = err.strip().splitlines()[-1]
     m = re.search(r"last checkpoint: iteration (\d+) in (\S+)\); continue exactly from there with: (motok .*)$", line)

@@ -204,3 +204,25 @@ def test_the_recipes_humanoid_section_builds_the_world_and_a_resume_keeps_it(sma
     assert r.exit_code == 2 and "humanoid.ankle_stiffness_scale 0.5 -> 0.7" in r.output, r.output
     r = CliRunner().invoke(app, [*args, "--set", "humanoid.ankle_stiffness_scale=0.5", "--resume"])
     assert r.exit_code == 0 and json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 2
+
+
+def test_video_contact_markers_colour_slides_and_count_slip_as_the_metric_does(hum, lib):
+    """The same real standing frame held for 10 steps, then slid at 0.5 m/s for 10, then lifted
+    5 cm: touching corners are drawn (green while held, red while sliding), lifted ones are not,
+    and the running slip at the end equals :func:`slip_sums`' value over the same corners."""
+    from motok.sim.soles import HOLD, SLIDE, contact_markers, reference_corners, slip_sums, soles
+
+    f, dt = lib.starts[0], 1 / 30
+    pos = np.repeat(lib.body_pos[f][None], 25, 0)
+    quat = np.repeat(lib.body_quat[f][None], 25, 0)
+    sole = soles(hum)
+    pos[..., 2] -= reference_corners(sole, pos[:1], quat[:1])[..., 2].min()
+    pos[10:, :, 0] += 0.5 * dt * np.arange(1, 16)[:, None]  # slides from step 10 on
+    pos[20:, :, 2] += 0.05  # lifted for the last 5 states
+    c = reference_corners(sole, pos, quat)
+    marks, rgba, running = contact_markers(c, dt)
+    down = c[0, :, 2] <= 0.01
+    assert down.sum() >= 4 and np.isnan(marks[20:]).all() and np.isfinite(marks[:20][:, down]).all()
+    assert np.allclose(rgba[5, down], HOLD) and np.allclose(rgba[15, down], SLIDE)
+    assert running[9] == 0 and running[19] == pytest.approx(100 * 0.5 * 10 / 19)  # 10 sliding steps of 19
+    assert running[-1] == pytest.approx(slip_sums(c, dt).result()["sole_slip_cm_s"])

@@ -110,6 +110,19 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
         renderer.close()
 
 
+def trajectory_frames(hum: Humanoid, qpos: np.ndarray, *, size=(640, 480), ghost: np.ndarray | None = None,
+                      title=None, markers: np.ndarray | None = None, marker_rgba=(0.9, 0.2, 0.2, 0.8),
+                      marker_radius: float = 0.08):
+    """The MuJoCo frames ``(H, W, 3) uint8`` of :func:`render_trajectory`, one per row of ``qpos``,
+    as an iterator (for composing videos: two runs side by side); raises where there is no GL."""
+    mk = None
+    if markers is not None:
+        pos = np.asarray(markers, dtype=np.float64)
+        mk = (pos, np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,)),
+              float(marker_radius))
+    return _frames_mujoco(hum, qpos, tuple(int(s) + int(s) % 2 for s in size), ghost, title, mk)
+
+
 def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
     if not title:
         return img

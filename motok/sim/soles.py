@@ -140,3 +140,26 @@ def contact_runs(flags: np.ndarray) -> np.ndarray:
     edges = np.diff(f, axis=0).T  # (G, T + 1): +1 where a contact starts, -1 after it ends
     starts, ends = np.nonzero(edges == 1), np.nonzero(edges == -1)
     return ends[1] - starts[1]
+
+
+HOLD, SLIDE = (0.1, 0.8, 0.2, 0.9), (0.95, 0.1, 0.1, 0.9)  # marker colours: green holds, red slides
+
+
+def contact_markers(corners: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a video draws of sole corners ``(T, K, 3)`` (MuJoCo world, z up): marker positions
+    ``(T, K, 3)`` (NaN where a corner is off the floor: not drawn), colours ``(T, K, 4)`` (:data:`SLIDE`
+    where the corner touched at the last state too and moved faster than :data:`SLIP_SPEED` since,
+    else :data:`HOLD`)
+    and the running sole slip in cm/s: over the steps so far where the corner touched at both
+    ends, as :func:`slip_sums` counts it."""
+    down = corners[..., 2] <= TOLERANCE
+    step = np.zeros(down.shape)
+    step[1:] = np.linalg.norm(corners[1:, :, :2] - corners[:-1, :, :2], axis=-1) / dt
+    both = down.copy()
+    both[1:] &= down[:-1]
+    both[0] = False
+    rgba = np.where(((step > SLIP_SPEED) & both)[..., None], SLIDE, HOLD).astype(np.float32)
+    pos = np.where(down[..., None], corners, np.nan)
+    n = np.cumsum(both.sum(1))
+    running = 100 * np.cumsum((step * both).sum(1)) / np.maximum(n, 1)
+    return pos, rgba, running

@@ -66,6 +66,9 @@ def test_every_key_each_stage_logs_has_a_label_and_a_unit(tree):  # noqa: F811
     # a key no table knows is still readable, its unit guessed from the suffix
     assert describe("foot_slide_mm") == Metric("Foot slide", "mm")
     assert describe("code_usage_3").label == "Code usage, codebook 3"
+    # an evaluation's reference clips (the mocap's own feet) share the simulated value's panel
+    assert split_key("eval_ref_sole_slip_cm_s") == ("sole_slip_cm_s", "the clips themselves")
+    assert split_key("eval_sole_slip_cm_s") == ("sole_slip_cm_s", "evaluation")
 
 
 def test_train_and_validation_share_a_panel_and_the_run_is_named(tree, tmp_path):  # noqa: F811

@@ -20,8 +20,10 @@ class Metric:
 
 
 # Prefix of a key -> the data it was measured on, as the legend says it; a key without one of
-# these prefixes is the training value.
-ROLES = {"val_": "validation", "eval_": "evaluation", "train_": "train clips"}
+# these prefixes is the training value. ``eval_ref_`` (an evaluation's reference clips measured over
+# the same frames: the feet of the mocap beside the simulated ones) comes before ``eval_``, which
+# would otherwise claim it.
+ROLES = {"val_": "validation", "eval_ref_": "the clips themselves", "eval_": "evaluation", "train_": "train clips"}
 TRAIN = "training"
 
 _FRACTION = "fraction, 0-1"

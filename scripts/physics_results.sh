@@ -285,7 +285,8 @@ stage_tasks() {
 }
 
 # Fig. 13: the navigation policy over the first M codebooks of the hybrid prior, and discrete+ over
-# the hybrid's best M (4 of 8) for the two at equal M; the M = all rows are `tasks`' navigation runs.
+# the hybrid's best M (4 of 8) for the two at equal M; the M = all rows are `tasks`' navigation runs
+# (all while task_navigation.yaml leaves `codebooks` null; else its M, and Fig. 13 compares to that).
 stage_codebooks() {
     local s m
     for s in "${SEEDS[@]}"; do

@@ -58,7 +58,8 @@ PAPER = {
 # The paper's claims, each "A better than B" on every column of its table: the hybrid prior is the
 # best for task learning (abstract, section 6.3: Tables 2-3 and navigation); and Fig. 13: a policy
 # over the first M codebooks of the hybrid does better than one over all of them, and the hybrid
-# beats discrete+ at equal M. (task, A, B, source)
+# beats discrete+ at equal M. (task, A, B, source); a bare prior name is the run at its recipe's
+# codebooks (all while the recipe leaves them null).
 CLAIMS = [(t, "hybrid", other, src) for t, src in (("inbetween", "Table 2"), ("hmd", "Table 3"),
                                                    ("navigation", "section 6.3"))
           for other in ("continuous", "discrete", "discrete+")] + [

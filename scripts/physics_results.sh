@@ -7,6 +7,7 @@
 #
 #   scripts/physics_results.sh                 # every stage, in the order below
 #   scripts/physics_results.sh priors tasks    # only these stages (names below)
+#   SEEDS="0 1 2 3" scripts/physics_results.sh tasks   # one more seed for every task cell
 #   kill -TERM PID                             # the training under way stops at its next checkpoint,
 #                                              # and the queue stops after it
 #   STOP_AT=19:40 scripts/physics_results.sh   # the same TERM, sent by the queue to itself at that time
@@ -14,7 +15,8 @@
 #                                              #  a clock time already past means tomorrow's)
 #   mkdir -p runs/dry && ln -s ../bandai2.h5 runs/dry/ && R=runs/dry EXPERT_IT=40 PRIOR_IT=20 TASK_IT=10 \
 #     GEN_N=4 GEN_SECONDS=3 EVAL_N=8 BALLS_N=4 KIN_IT=20 T2M_RECIPE=recipes/eval/t2m_toy.yaml \
-#     scripts/physics_results.sh                 # every stage at toy size (~35 min on 2 cores)
+#     SEEDS=0 scripts/physics_results.sh         # every stage at toy size, one seed (~35 min on 2 cores
+#                                              # measured before the seeded task stages, not since)
 #   mkdir -p /tmp/frozen && git archive HEAD motok | tar -x -C /tmp/frozen && \
 #     MOTOK="env PYTHONPATH=/tmp/frozen .venv/bin/python -P -m motok.cli.main" scripts/physics_results.sh
 #                                              # the queue on a copy of the code, so that editing the
@@ -26,24 +28,26 @@
 #   priors    hybrid, continuous, discrete+, discrete, hybrid-vq distilled from it, PRIOR_IT iterations each (Fig. 4, Table 1),
 #             each evaluated at once: imitation on the train and test clips (Fig. 4), its Table 1 generations
 #   prioreval Table 1 (motion matching of every prior's generations)
-#   nav       navigation over hybrid, discrete+ and continuous (std 0.2 and 0.1; std 0.2 at lr 5e-5), TASK_IT iterations each (the task tables)
-#   tasks     in-betweening and head tracking over hybrid and continuous (lr 5e-5), hybrid with 1, 2, 4 codebooks on
-#             navigation (Fig. 13), then the continuous prior at the recipes' lr 3e-4, then discrete+ with 4
-#             codebooks (the hybrid's best M, for the two at equal M)
-#   taskeval  every task run evaluated; the thrown balls on the navigation runs (every 0.3 s, and
-#             every $BALL_PERIODS s: "1 3 1000" unless set)
+#   tasks     the task tables: in-betweening (Table 2), head tracking (Table 3) and navigation over the
+#             continuous, discrete, discrete+ and hybrid priors, on every seed of SEEDS, TASK_IT iterations
+#             each, into $R/tasks/TASK_PRIOR_seedN; each run evaluated when it finishes (Tables 2-3 on the
+#             test clips; navigation's targets, then thrown balls every 0.3 s and every $BALL_PERIODS s)
+#   codebooks Fig. 13: navigation over the hybrid's first 1, 2, 4 codebooks and discrete+'s first 4, every seed
 #   t2p       text to physics: tokenizer, GPT and evaluator, then GPT kinematic, GPT tracked and real tracked rows
 #   plots     the curves of every run that exists, one figure per comparison, in runs/plots/
 #
 # On a fresh machine, the shortest chains first: text to physics needs only the hybrid
-# prior, the task tables the continuous and discrete+ ones too; then the rest (two more
-# priors, Table 1):
+# prior, the task tables the continuous, discrete and discrete+ ones too; then the rest
+# (hybrid-vq, Table 1):
 #   PRIORS=hybrid TABLE1=0 scripts/physics_results.sh data expert priors t2p
-#   PRIORS="hybrid continuous discrete+" TABLE1=0 scripts/physics_results.sh priors nav tasks taskeval
+#   PRIORS="hybrid continuous discrete+ discrete" TABLE1=0 scripts/physics_results.sh priors tasks codebooks
 #   scripts/physics_results.sh
 #
 # Settings (environment): PRIORS (some of: hybrid continuous discrete+ discrete hybrid-vq; unset: all)
-# the priors the `priors` stage distils, TABLE1=0 leaves their Table 1 generations to `prioreval`;
+# the priors the `priors` stage distils (and the task stages use), TABLE1=0 leaves their Table 1
+# generations to `prioreval`; SEEDS="0 1 2" the training seeds of every task cell (--set seed=N; the
+# evaluations draw the same episodes, seed 0, for every run), TASKS (some of: inbetween hmd navigation;
+# unset: all), CONTINUOUS_SET=ppo.lr=5e-5 the continuous prior's one --set (empty: the recipe's);
 # R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
 # GEN_N=64 samples of GEN_SECONDS=30 s per Table 1 row, EVAL_N=256 task episodes, BALLS_N=64
@@ -53,10 +57,11 @@
 # recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/history.md). Both
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
-# Time on 2 cores: expert 3.0-4.1 h (measured on three machines), priors 2.3 h (28 min each, measured
-# for hybrid) and their evaluations ~0.6 h (each prior's right after it), tasks ~4.6 h, their
-# evaluations 0.5 h, text to physics 2.5 h (estimates): about 14 h, in pieces. `scripts/physics_tables.py --status` shows where it stands.
-# Measured durations on 2 quiet cores are in docs/results.md beside each number.
+# Time on 2 cores (measured, docs/results.md): expert 3.3 h, priors 34-45 min each and their
+# evaluations ~0.6 h in all, text to physics 1 h; a task run 25-47 min, its evaluations a few
+# minutes (a navigation run's thrown balls ~15 min more), so `tasks` at 3 seeds (36 runs) is about
+# 25 h and `codebooks` (12 runs) about 9 h: about 42 h in all, in pieces. Every command's wall time goes to $R/logs/times.tsv;
+# `scripts/physics_tables.py --status` shows where each run stands and the time of each stage so far.
 # ARITH=avx2 (default) caps numpy, OpenBLAS and torch at their AVX2 kernels on an x86 machine with
 # AVX-512, for every stage, so that a run resumed or redone on that CPU model repeats to the digit:
 # AVX-512 kernels give other bits (even the preprocessed data differs, in 6e-5 of its feature values
@@ -86,6 +91,21 @@ done
 PRIORS=()  # in the queue's order, whatever the order asked
 for k in "${ALL_PRIORS[@]}"; do case " ${wanted[*]} " in *" $k "*) PRIORS+=("$k") ;; esac; done
 TABLE1=${TABLE1:-1}
+read -ra SEEDS <<< "${SEEDS:-0 1 2}"  # every task cell on each (motok/eval/seeds.py decides from 3 or more)
+for s in "${SEEDS[@]}"; do
+    [[ "$s" =~ ^[0-9]+$ ]] || { echo "SEEDS: '$s' is not a seed (expected integers >= 0, e.g. SEEDS=\"0 1 2\")" >&2; exit 2; }
+done
+[ ${#SEEDS[@]} -gt 0 ] || { echo "SEEDS: empty (expected integers >= 0, e.g. SEEDS=\"0 1 2\")" >&2; exit 2; }
+ALL_TASKS=(inbetween hmd navigation)
+read -ra TASKS <<< "${TASKS:-${ALL_TASKS[*]}}"
+for t in "${TASKS[@]}"; do
+    case " ${ALL_TASKS[*]} " in *" $t "*) ;; *) echo "TASKS: unknown task '$t' (expected some of: ${ALL_TASKS[*]})" >&2; exit 2 ;; esac
+done
+TASK_PRIORS=()  # the task tables' four priors, among those PRIORS names
+for k in continuous discrete discrete+ hybrid; do case " ${PRIORS[*]} " in *" $k "*) TASK_PRIORS+=("$k") ;; esac; done
+# the continuous prior's Gaussian policy at Tables 6-8's lr: at the recipes' 3e-4 its updates leave
+# PPO's trust region (docs/results.md); empty: the recipe's, like every other prior
+CONTINUOUS_SET=${CONTINUOUS_SET-ppo.lr=5e-5}
 DATA=$R/bandai2.h5
 EXPERT=$R/expert_set2
 export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
@@ -103,18 +123,33 @@ trap 'stopped=1; [ -n "${child:-}" ] && kill -TERM "$child" 2>/dev/null' TERM
 
 log() { printf '[%s] %s\n' "$(date -u +%H:%M:%S)" "$*"; }
 
+# log_time LOG STATUS SECONDS ARGS...: one line per command in $R/logs/times.tsv (end time UTC, stage,
+# log, seconds, its output or run folder, ok / stopped / exit N): a run trained in pieces has one
+# line per piece, so its time is their sum; `physics_tables.py --status` adds them up per stage.
+log_time() {
+    local name=$1 status=$2 secs=$3 out="" prev=""; shift 3
+    for a in "$@"; do case $prev in -o|--policy) out=$a ;; esac; prev=$a; done
+    printf '%s\t%s\t%s\t%s\t%s\t%s\n' "$(date -u +%FT%TZ)" "${STAGE:-}" "$name" "$secs" "$out" "$status" \
+        >> "$R/logs/times.tsv"
+}
+
 # run LOG CMD...: one command at low priority, its output in $R/logs/LOG.log; the queue stops when
 # it fails or was asked to stop.
 run() {
     local name=$1; shift
     if [ "$stopped" = 1 ]; then log "stopped on request before $name"; exit 0; fi  # a TERM between two commands
     log "$name: $*"
+    local t0=$SECONDS
     nice -n "$NICE" "$@" >> "$R/logs/$name.log" 2>&1 &
     child=$!
     local rc=0
     wait "$child" || rc=$?
     wait "$child" 2>/dev/null || true  # a TERM interrupts the first wait, not the child
     child=
+    local status=ok
+    [ "$rc" != 0 ] && status="exit $rc"
+    [ "$stopped" = 1 ] && status=stopped
+    log_time "$name" "$status" $((SECONDS - t0)) "$@"
     if [ "$stopped" = 1 ]; then log "stopped on request after $name"; exit 0; fi
     if [ "$rc" != 0 ]; then log "$name failed (exit $rc): see $R/logs/$name.log"; exit "$rc"; fi
 }
@@ -191,42 +226,23 @@ stage_prioreval() {
     return 0
 }
 
-# task TASK PRIOR RUN [--set ...]: one task policy over a frozen prior, TASK_IT iterations.
-task() {
-    local t=$1 k=$2 dir=$3; shift 3
+# The task tables (Tables 2-3, navigation) and Fig. 13, each cell on every seed of SEEDS at one
+# budget (TASK_IT iterations), so that docs/results.md can decide each ordering by the rule of
+# motok/eval/seeds.py. Seeds outermost: after the first pass every cell has one seed.
+task_dir() { echo "$R/tasks/$1_$2_seed$3"; }  # TASK PRIOR[_mM] SEED
+
+# seeded TASK PRIOR SEED DIR [ARGS...]: one task policy over a frozen prior, trained (resumed
+# where its folder holds a checkpoint, skipped when finished) and then evaluated.
+seeded() {
+    local t=$1 k=$2 s=$3 dir=$4; shift 4
     [ -f "$R/prior_$k/bundle.json" ] || { log "skip $dir: no prior_$k"; return 0; }
-    train "$dir" "$(basename "$dir")" "${M[@]}" control train --task "$t" --prior "$R/prior_$k" \
-        --recipe "recipes/control/task_$t.yaml" --set iterations="$TASK_IT" "$@"
-}
-
-stage_nav() {
-    task navigation hybrid "$R/nav_hybrid"
-    task navigation discrete+ "$R/nav_discrete+"
-    task navigation continuous "$R/nav_continuous" --set net.std=0.2
-    task navigation continuous "$R/nav_continuous_std0.1" --set net.std=0.1
-    # at the recipes' lr 3e-4 the Gaussian policy's updates move 0.2-0.8 nats (approx. KL, clip
-    # fraction 0.7-0.8) against the categorical policies' 0.03: Tables 6-8's 5e-5 is its fair
-    # second chance (~36x smaller steps in KL), so the hybrid's lead is not the optimiser's doing
-    task navigation continuous "$R/nav_continuous_lr5e-5" --set net.std=0.2 --set ppo.lr=5e-5
-}
-
-stage_tasks() {
-    # the continuous prior at Tables 6-8's lr 5e-5: at the recipes' 3e-4 its Gaussian updates move
-    # 1-11 nats of approx. KL on in-betweening and its success falls as it trains (0.39 -> 0.20);
-    # at 5e-5 they move 0.03, what the categorical policies move at 3e-4 (docs/results.md)
-    for t in inbetween hmd; do
-        task "$t" hybrid "$R/${t}_hybrid"
-        task "$t" continuous "$R/${t}_continuous_lr5e-5" --set ppo.lr=5e-5
-    done
-    for m in 1 2 4; do
-        task navigation hybrid "$R/nav_hybrid_m$m" --codebooks "$m"
-    done
-    # the same recipe for every prior, last: what the diverging updates cost
-    for t in inbetween hmd; do
-        task "$t" continuous "$R/${t}_continuous"
-    done
-    # Fig. 13's best M for the hybrid (4 of 8) on discrete+ too: the two priors compared at equal M
-    task navigation discrete+ "$R/nav_discrete+_m4" --codebooks 4
+    local extra=()
+    [ "$k" = continuous ] && [ -n "$CONTINUOUS_SET" ] && extra=(--set "$CONTINUOUS_SET")
+    if [ ! -f "$dir/bundle.json" ] || [ -n "$(unfinished "$dir")" ]; then
+        train "$dir" "$(basename "$dir")" "${M[@]}" control train --task "$t" --prior "$R/prior_$k" \
+            --recipe "recipes/control/task_$t.yaml" --set iterations="$TASK_IT" --set seed="$s" "${extra[@]}" "$@"
+    fi
+    task_evals "$t" "$s" "$dir"
 }
 
 # unfinished DIR: "I of N" when DIR's checkpoint stands before the iterations its config asks for
@@ -238,30 +254,47 @@ it, goal = b.get("extra", {}).get("iteration"), b.get("config", {}).get("iterati
 if it is not None and goal and it < goal: print(f"{it} of {goal}")' "$1/bundle.json"
 }
 
-stage_taskeval() {
-    local part
-    for dir in "$R"/nav_* "$R"/inbetween_* "$R"/hmd_*; do
-        [ -f "$dir/bundle.json" ] || continue
-        # an evaluation file is never made again: one of a half-trained policy would stand for the run
-        part=$(unfinished "$dir")
-        if [ -n "$part" ]; then log "skip $dir: not evaluated at iteration $part (tasks resumes it)"; continue; fi
-        local t=navigation
-        case $(basename "$dir") in inbetween_*) t=inbetween ;; hmd_*) t=hmd ;; esac
-        if [ "$t" = navigation ]; then  # no reference motion: the targets are drawn
-            once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --policy "$dir" -n "$EVAL_N" \
-                --render "$dir/$t.mp4"
-        else  # Tables 2-3: windows and head trajectories of the test clips, never trained on
-            once "$dir/eval_${t}_test.json" task_eval "${M[@]}" control eval --task "$t" --policy "$dir" -n "$EVAL_N" \
-                -d "$DATA" --split test --render "$dir/$t.mp4"
-        fi
-        [ "$t" = navigation ] || continue
-        once "$dir/perturb.json" perturb "${M[@]}" control perturb --policy "$dir" -n "$BALLS_N" --render "$dir/balls.mp4"
-        local p
+# task_evals TASK SEED DIR: the evaluations of one finished task run; videos of seed 0 only.
+task_evals() {
+    local t=$1 s=$2 dir=$3 part p
+    [ -f "$dir/bundle.json" ] || { log "skip $dir: no checkpoint to evaluate"; return 0; }
+    # an evaluation file is never made again: one of a half-trained policy would stand for the run
+    part=$(unfinished "$dir")
+    if [ -n "$part" ]; then log "skip $dir: not evaluated at iteration $part (its training resumes first)"; return 0; fi
+    local video=()
+    [ "$s" = "${SEEDS[0]}" ] && video=(--render "$dir/$t.mp4")
+    if [ "$t" = navigation ]; then  # no reference motion: the targets are drawn
+        once "$dir/eval_$t.json" task_eval "${M[@]}" control eval --task "$t" --policy "$dir" -n "$EVAL_N" "${video[@]}"
+        once "$dir/perturb.json" perturb "${M[@]}" control perturb --policy "$dir" -n "$BALLS_N"
         for p in "${BALL_PERIODS[@]}"; do  # the same starts (seed 0) under fewer balls: what the barrage takes
             once "$dir/perturb_period$p.json" perturb "${M[@]}" control perturb --policy "$dir" -n "$BALLS_N" --period "$p"
         done
+    else  # Tables 2-3: windows and head trajectories of the test clips, never trained on
+        once "$dir/eval_${t}_test.json" task_eval "${M[@]}" control eval --task "$t" --policy "$dir" -n "$EVAL_N" \
+            -d "$DATA" --split test "${video[@]}"
+    fi
+}
+
+stage_tasks() {
+    local s t k
+    for s in "${SEEDS[@]}"; do
+        for t in "${TASKS[@]}"; do
+            for k in "${TASK_PRIORS[@]}"; do seeded "$t" "$k" "$s" "$(task_dir "$t" "$k" "$s")"; done
+        done
     done
-    return 0
+}
+
+# Fig. 13: the navigation policy over the first M codebooks of the hybrid prior, and discrete+ over
+# the hybrid's best M (4 of 8) for the two at equal M; the M = all rows are `tasks`' navigation runs
+# (all while task_navigation.yaml leaves `codebooks` null; else its M, and Fig. 13 compares to that).
+stage_codebooks() {
+    local s m
+    for s in "${SEEDS[@]}"; do
+        for m in 1 2 4; do
+            seeded navigation hybrid "$s" "$(task_dir navigation "hybrid_m$m" "$s")" --codebooks "$m"
+        done
+        seeded navigation discrete+ "$s" "$(task_dir navigation "discrete+_m4" "$s")" --codebooks 4
+    done
 }
 
 stage_t2p() {
@@ -301,18 +334,25 @@ plot() {
 stage_plots() {
     plot expert success,episode_seconds,r_im,samples_per_s,eval_success,eval_mpjpe_mm "$EXPERT"
     plot priors eval_success,eval_mpjpe_mm,rollout_action_err,code_usage,samples_per_s "${ALL_PRIORS[@]/#/$R/prior_}"
-    # r_task: the task reward per step, in [0, 1]: the return normalised by its maximum
-    plot navigation r_task,episode_seconds,eval_reached_share,eval_approach_share,eval_falls_per_episode \
-        "$R/nav_hybrid" "$R/nav_discrete+" "$R/nav_continuous" "$R/nav_continuous_std0.1" "$R/nav_continuous_lr5e-5"
-    plot codebooks r_task,episode_seconds,eval_approach_share,eval_falls_per_episode "$R/nav_hybrid_m1" "$R/nav_hybrid_m2" \
-        "$R/nav_hybrid_m4" "$R/nav_hybrid" "$R/nav_discrete+_m4"
-    plot inbetween r_task,episode_seconds,eval_success_rate,eval_mpjpe_mm_mean "$R/inbetween_hybrid" \
-        "$R/inbetween_continuous" "$R/inbetween_continuous_lr5e-5"
-    plot hmd r_task,episode_seconds,eval_success_rate,eval_head_error_mm_mean "$R/hmd_hybrid" "$R/hmd_continuous" \
-        "$R/hmd_continuous_lr5e-5"
+    # r_task: the task reward per step, in [0, 1]: the return normalised by its maximum. The first
+    # seed's run of each prior (the other seeds' curves are alike in shape; their spread is the tables')
+    local s=${SEEDS[0]} task keys k runs
+    for task in "${ALL_TASKS[@]}"; do
+        case $task in
+            navigation) keys=r_task,episode_seconds,eval_reached_share,eval_approach_share,eval_falls_per_episode ;;
+            inbetween) keys=r_task,episode_seconds,eval_success_rate,eval_mpjpe_mm_mean ;;
+            hmd) keys=r_task,episode_seconds,eval_success_rate,eval_head_error_mm_mean ;;
+        esac
+        runs=()
+        for k in continuous discrete discrete+ hybrid; do runs+=("$(task_dir "$task" "$k" "$s")"); done
+        plot "$task" "$keys" "${runs[@]}"
+    done
+    plot codebooks r_task,episode_seconds,eval_approach_share,eval_falls_per_episode \
+        "$(task_dir navigation hybrid_m1 "$s")" "$(task_dir navigation hybrid_m2 "$s")" \
+        "$(task_dir navigation hybrid_m4 "$s")" "$(task_dir navigation hybrid "$s")" "$(task_dir navigation discrete+_m4 "$s")"
 }
 
-ALL=(data expert priors prioreval nav tasks taskeval t2p plots)
+ALL=(data expert priors prioreval tasks codebooks t2p plots)
 
 # STOP_AT: the queue sends itself the TERM of `kill -TERM` at that time (a session's end): the
 # training under way stops at its next checkpoint and the queue after it. The timer goes with the
@@ -344,6 +384,7 @@ main() {
     arm_stop
     for s in "${stages[@]}"; do
         log "stage $s"
+        STAGE=$s
         "stage_$s"
     done
     log "done: results under $R/ (logs in $R/logs/)"

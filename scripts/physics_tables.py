@@ -6,8 +6,10 @@ there is read from an output file, not copied by hand:
 
 Priors: the imitation table (Fig. 4: train and test clips from frame 0), code usage,
 samples/s and wall time; Table 1 (motion matching); the paper's orderings, each said to hold or
-not. Tasks: navigation, thrown balls, in-betweening and head tracking (Tables 2-3).
-Text to physics: the t2m rows.
+not. Tasks (task_tables.py): in-betweening (Table 2), head tracking (Table 3), navigation and
+Fig. 13 as mean ± 95 % interval over seeds, each of the paper's claims with its verdict
+(motok/eval/seeds.py), and thrown balls per run. Text to physics: the t2m rows. `--status` adds
+the wall time of each stage from the queue's logs/times.tsv.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import argparse
 import json
 import statistics
 from pathlib import Path
+
+from task_tables import claims, seeded_tables, stage_times  # beside this script
 
 PRIORS = ("hybrid", "continuous", "discrete+", "discrete", "hybrid-vq")
 
@@ -109,7 +113,7 @@ def table1(R: Path) -> str:
 
 
 def orderings(R: Path) -> str:
-    """The paper's orderings the priors' and tasks' results are about, each read from the outputs and said to hold or
+    """The paper's orderings the priors' results are about, each read from the outputs and said to hold or
     not by a strict comparison; whether a difference is beyond noise (a few points on 427 test clips
     are not) is for the discussion in docs/results.md."""
     rep = load(R / "table1" / "table1.json")
@@ -141,97 +145,14 @@ def orderings(R: Path) -> str:
                        ("hybrid", "continuous", "hybrid vs continuous (Fig. 4)")):
         claim(f"{what}: {a} above {b}, test clips played to the end", im(a), im(b), "success_rate", True, pct)
         claim(f"{what}: {a} below {b}, test MPJPE", im(a), im(b), "mpjpe_mm", False, "{:.1f} mm".format)
-    # the hybrid prior best for task learning (section 6.3); navigation reaches few targets
-    # on this protocol (docs/results.md), so the share of the distance closed is the comparison. The
-    # continuous prior at lr 5e-5 is the comparison at matched update sizes (its policy at the recipes'
-    # 3e-4 leaves PPO's trust region); its 3e-4 run stays as what the mismatch costs.
-    others = ("discrete+", "continuous", "continuous_lr5e-5")
-    name = {"continuous": "continuous (lr 3e-4)", "continuous_lr5e-5": "continuous (lr 5e-5)"}
-    nav = {k: load(R / f"nav_{k}" / "eval_navigation.json") or {} for k in ("hybrid",) + others}
-    for other in others:
-        o = name.get(other, other)
-        claim(f"navigation: hybrid above {o}, share of the distance closed", ("hybrid", nav["hybrid"]),
-              (o, nav[other]), "approach_share", True, pct)
-        claim(f"navigation: hybrid below {o}, falls per episode", ("hybrid", nav["hybrid"]),
-              (o, nav[other]), "falls_per_episode", False, "{:.2f}".format)
-    # Fig. 13: RVQ abstracts the task policy's action space, so a policy over the first M codebooks
-    # does better than one over all of them (nav_hybrid: every codebook); and the hybrid against
-    # discrete+ at equal M, where discrete+ ran with fewer codebooks too
-    for m in (1, 2, 4):
-        h, d = (load(R / f"nav_{k}_m{m}" / "eval_navigation.json") or {} for k in ("hybrid", "discrete+"))
-        books = f"{m} codebook{'s' * (m > 1)}"
-        claim(f"navigation (Fig. 13): hybrid over {books} above all, share of the distance closed",
-              (f"M={m}", h), ("all", nav["hybrid"]), "approach_share", True, pct)
-        claim(f"navigation (Fig. 13): hybrid over {books} below all, falls per episode",
-              (f"M={m}", h), ("all", nav["hybrid"]), "falls_per_episode", False, "{:.2f}".format)
-        claim(f"navigation: hybrid above discrete+, both over {books}, share of the distance closed",
-              ("hybrid", h), ("discrete+", d), "approach_share", True, pct)
-        claim(f"navigation: hybrid below discrete+, both over {books}, falls per episode",
-              ("hybrid", h), ("discrete+", d), "falls_per_episode", False, "{:.2f}".format)
-    for task, what in (("inbetween", "in-betweening (Table 2)"), ("hmd", "head tracking (Table 3)")):
-        ev = {k: load(R / f"{task}_{k}" / f"eval_{task}_test.json") or {}
-              for k in ("hybrid", "continuous", "continuous_lr5e-5")}
-        for other in ("continuous_lr5e-5", "continuous"):
-            o = name[other]
-            claim(f"{what}: hybrid above {o}, test success", ("hybrid", ev["hybrid"]), (o, ev[other]),
-                  "success_rate", True, pct)
-            claim(f"{what}: hybrid below {o}, test MPJPE", ("hybrid", ev["hybrid"]), (o, ev[other]),
-                  "mpjpe_mm_mean", False, "{:.1f} mm".format)
     if not rows:
         return ""
     return "The paper's orderings on these outputs:\n\n" + table(["claim", "ours", ""], rows)
 
 
-def evaluated(e: dict, m: list[dict]) -> str:
-    """The samples of the checkpoint an evaluation played, and its iteration when the training went
-    on past it (the evaluation then stands for an earlier policy than the curves' end)."""
-    ck = e.get("checkpoint", {})
-    if ck.get("samples") is None:  # an evaluation that does not say: the run's last record
-        return f"{m[-1]['samples'] / 1e6:.1f} M"
-    s = f"{ck['samples'] / 1e6:.1f} M"
-    return s if ck.get("iteration", m[-1]["iteration"]) >= m[-1]["iteration"] else f"{s} (it {ck['iteration']})"
-
-
 def tasks(R: Path) -> str:
-    out = []
-    nav = []
-    for run in sorted(R.glob("nav_*")):
-        e, m = load(run / "eval_navigation.json"), metrics(run)
-        if e is None or not m:
-            continue
-        nav.append([run.name, evaluated(e, m), f"{m[-1]['wall_s'] / 60:.0f} min",
-                    pct(e["reached_share"]), num(e["time_to_reach_mean_s"], "{:.2f}"),
-                    num(e.get("closest_distance_mean_m"), "{:.2f}"), pct(e.get("approach_share")),
-                    num(e["falls_per_episode"], "{:.2f}"), num(e["goal_speed_mean"], "{:.2f}"),
-                    num(e.get("idle_distance_mean"), "{:.2f}"), pct(e.get("idle_filtered_rate"))])
-    if nav:
-        out.append(table(["run", "samples", "wall", "targets reached", "time to reach s", "closest approach m",
-                          "distance closed", "falls / episode",
-                          "speed at goal m/s", "idle distance", "idle filtered"], nav))
-    balls = balls_table(R)
-    if balls:
-        out.append(balls)
-    for task in ("inbetween", "hmd"):
-        rows = []
-        for run in sorted(R.glob(f"{task}_*")):
-            e, m = load(run / f"eval_{task}_test.json"), metrics(run)  # Tables 2-3: the test clips
-            if e is None or not m:
-                continue
-            keys = ["mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm"]
-            if task == "inbetween":
-                keys = [f"keyframe_{k}" for k in keys] + keys
-            else:
-                keys = keys + ["head_error_mm"]
-            rows.append([run.name, evaluated(e, m), pct(e["success_rate"])]
-                        + [f"{e[k + '_mean']:.1f} +- {e[k + '_std']:.1f}" for k in keys])
-        if rows:
-            heads = ["MPJPE", "G-MPJPE", "vel. err.", "acc. err."]
-            if task == "inbetween":
-                heads = [f"keyframes {h}" for h in heads] + [f"all frames {h}" for h in heads]
-            else:
-                heads = heads + ["head error"]
-            out.append(table(["run", "samples", "success"] + heads, rows))
-    return "\n\n".join(out)
+    """The task tables over seeds, the paper's claims with their verdicts, and the thrown balls."""
+    return "\n\n".join(x for x in (seeded_tables(R), claims(R), balls_table(R)) if x)
 
 
 def balls_table(R: Path) -> str:
@@ -239,7 +160,7 @@ def balls_table(R: Path) -> str:
     Recoveries count over the hits whose 3 s window was played (`hits_resolved`): a hit too near an
     episode's end is censored whatever follows it."""
     rows = []
-    for run in sorted(R.glob("nav_*")):
+    for run in sorted((R / "tasks").glob("navigation_*")):
         # each result names its own period (`perturb.json` holds the paper's, others their own files)
         found = sorted((load(f) for f in run.glob("perturb*.json")), key=lambda p: p["config"]["period"])
         for p in found:
@@ -328,6 +249,8 @@ def status(R: Path) -> str:
                      seen, files])
     out = [table(["run", "iteration", "samples", "wall", "samples/s (last 50)", "latest evaluation", "evaluated"],
                  rows)] if rows else []
+    if stage_times(R):
+        out.append(stage_times(R))
     log = R / "logs" / "queue.log"
     if log.exists() and log.read_text().strip():
         out.append("queue: " + log.read_text().strip().splitlines()[-1])

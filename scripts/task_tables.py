@@ -48,7 +48,12 @@ EXTRA = {"inbetween": [("success_rate", "success", "higher", PCT)], "hmd": [("su
 # The paper's numbers, one entry per table, named by its source. docs/results.md and docs/history.md
 # state the paper's orderings and setup (4,096 environments, batches of 65,536, lr 5e-5, 8 x 1,024
 # codes) but transcribe none of these tables' values, so `values` is empty until they are: a row
-# written here as {prior: {key: value}} prints beside ours.
+# written here as {variant: {key: value}} prints beside ours as "VARIANT (paper)". Keys are the
+# evaluation-file keys of METRICS and EXTRA (the paper's keyframe MPJPE of Table 2 is
+# "keyframe_mpjpe_mm_mean", its all-frame one "mpjpe_mm_mean"); a key that is not one of the
+# table's columns is refused rather than left unprinted. Values in the columns' units: millimetres
+# (convert a table in metres or centimetres), seconds, falls per episode, and shares as fractions
+# (a paper's 85.2 % is 0.852). A column the paper does not report is left out of its row.
 PAPER = {
     "inbetween": {"source": "Bae et al. 2025, Table 2, section 6.3", "values": {}},
     "hmd": {"source": "Bae et al. 2025, Table 3, section 6.3", "values": {}},
@@ -122,6 +127,9 @@ def seeded_tables(R: Path) -> str:
             rows.append([v, ", ".join(str(s) for s in sorted(ev))] + [cell(values(ev, k), f) for k, _, _, f in cols])
             paper = PAPER[task]["values"].get(v)
             if paper:
+                unknown = sorted(set(paper) - {k for k, _, _, _ in cols})
+                if unknown:
+                    raise ValueError(f"PAPER[{task!r}] row {v!r}: {', '.join(unknown)} not among the table's columns")
                 rows.append([f"{v} (paper)", ""] + [fmt(paper[k], f) if k in paper else "" for k, _, _, f in cols])
         note = "" if any(PAPER[task]["values"].values()) else \
             f" The paper's values ({PAPER[task]['source']}) are not transcribed: PAPER in scripts/task_tables.py."

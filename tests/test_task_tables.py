@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -69,3 +71,38 @@ def test_the_claims_are_decided_over_seeds(tmp_path):
     assert nav + "above discrete, targets reached | 2.0 % (3) | 50.0 % (3) | does not hold (diff -0.48" in out
     assert nav + "below discrete, falls / episode | 0.10 (3) | 0.20 (3) | holds (diff -0.1, CI [-0.348, +0.148]" not in out
     assert nav + "below discrete, falls / episode | 0.10 (3) | 0.20 (3) | undecided (diff -0.1, CI [-0.348, +0.148]" in out
+
+
+def test_the_papers_row_prints_beside_ours(tmp_path, script, monkeypatch):
+    """A row of PAPER prints under our row of the same prior, in the columns' formats, and the
+    "not transcribed" note goes; a key that is no column of the table is refused. The values here
+    are made up for the test, not the paper's."""
+    tt = script("task_tables")
+    runs = tmp_path / "runs"
+    base = {f"{f}{k}_mean": 50.0 for f in ("", "keyframe_") for k in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm",
+                                                                      "acc_err_mm")}
+    for s in range(2):
+        d = runs / "tasks" / f"inbetween_hybrid_seed{s}"
+        d.mkdir(parents=True)
+        (d / "eval_inbetween_test.json").write_text(json.dumps({**base, "success_rate": 0.5}))
+    out = tt.seeded_tables(runs)
+    assert "are not transcribed" in out and "(paper)" not in out
+    monkeypatch.setitem(tt.PAPER["inbetween"], "values",
+                        {"hybrid": {"keyframe_mpjpe_mm_mean": 12.34, "mpjpe_mm_mean": 56.7, "success_rate": 0.852}})
+    out = tt.seeded_tables(runs)
+    lines = out.splitlines()
+    ours = next(i for i, x in enumerate(lines) if x.startswith("| hybrid | 0, 1 |"))
+    assert lines[ours + 1] == "| hybrid (paper) |  | 12.3 |  |  |  | 56.7 |  |  |  | 85.2 % |", lines[ours + 1]
+    assert "not transcribed" not in out
+    monkeypatch.setitem(tt.PAPER["inbetween"], "values", {"hybrid": {"keyframe_mpjpe_mm": 12.3}})
+    with pytest.raises(ValueError, match="keyframe_mpjpe_mm not among"):
+        tt.seeded_tables(runs)
+
+
+def test_the_transcribed_keys_are_columns(script):
+    """Every key of every row of PAPER names a column of its table (a misspelt key would print nothing)."""
+    tt = script("task_tables")
+    for task, entry in tt.PAPER.items():
+        cols = {k for k, _, _, _ in tt.METRICS[task] + tt.EXTRA[task]}
+        for variant, row in entry["values"].items():
+            assert set(row) <= cols, (task, variant, set(row) - cols)

@@ -75,3 +75,27 @@ def test_the_reports_written_beside_an_output_are_checked_too(tmp_path):
         refuse_foreign(beside, "-o")
     beside.write_text('{"kind": "control-track", "schema_version": 1}\n')
     refuse_foreign(beside, "-o")  # motok's own report: replaced
+
+
+def test_plot_without_out_checks_its_default_output_as_it_checks_out(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.jsonl").write_text('{"iteration": 1, "loss": 1.0}\n{"iteration": 2, "loss": 0.5}\n')
+    curves = run / "curves.png"
+    curves.write_bytes(b"somebody's picture")  # not motok's: refused before any drawing, in one line
+    r = runner.invoke(app, ["-q", "plot", str(run)])
+    assert r.exit_code == 2 and f"{curves} exists and is not a PNG that motok wrote" in r.output, r.output
+    assert len(r.output.strip().splitlines()) == 1 and curves.read_bytes() == b"somebody's picture"
+    curves.unlink()
+    for _ in range(2):  # motok's own picture is replaced, run after run, and no lock is left behind
+        r = runner.invoke(app, ["-q", "plot", str(run)])
+        assert r.exit_code == 0 and foreign_file(curves) is None, r.output
+    assert sorted(p.name for p in run.iterdir()) == ["curves.png", "metrics.jsonl"]
+    r = runner.invoke(app, ["-q", "plot", str(tmp_path)])  # a folder that is no run: said, nothing written
+    assert r.exit_code == 2 and "not a run folder (it has no metrics.jsonl)" in r.output, r.output
+    assert not (tmp_path / "curves.png").exists()
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "metrics.jsonl").write_text('{"iteration": 1, "loss": 1.0}\n')
+    (tmp_path / "busy" / "curves.png").mkdir()  # the default output is a folder
+    r = runner.invoke(app, ["-q", "plot", str(tmp_path / "busy")])
+    assert r.exit_code == 2 and "is a folder" in r.output, r.output

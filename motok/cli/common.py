@@ -141,21 +141,28 @@ def data_option(help: str, required: bool = True):
     return input_option("--data", "-d", help=help, required=required)
 
 
+def check_output(ctx: typer.Context, path, label: str, *, folder: bool = False,
+                 suffixes: tuple[str, ...] = ()) -> None:
+    """The checks of an output option (:func:`output_option`) on ``path``, for an output a command
+    names itself when the option is left out (``motok plot RUN`` writes ``RUN/curves.png``)."""
+    from motok.atomic import OutputError, check_writable
+    try:
+        check_writable(path, folder=folder, suffixes=suffixes, what=label)
+    except OutputError as e:
+        fail(str(e))
+    if not folder:  # a foreign file is never replaced; one writer per file
+        from motok.cli.output_files import claim_output_file
+        run(claim_output_file, ctx, path, label)
+
+
 def _writable(folder: bool, suffixes: tuple[str, ...]):
     def check(ctx: typer.Context, param, value):
         if ctx.resilient_parsing or value is None:
             return value
-        from motok.atomic import OutputError, check_writable
         opts = [o for o in getattr(param, "opts", []) if o.startswith("-")]
         label = "/".join(sorted(opts, key=len)) or param.name
         for v in value if isinstance(value, (list, tuple)) else [value]:
-            try:
-                check_writable(v, folder=folder, suffixes=suffixes, what=label)
-            except OutputError as e:
-                fail(str(e))
-            if not folder:  # a foreign file is never replaced; one writer per file
-                from motok.cli.output_files import claim_output_file
-                run(claim_output_file, ctx, v, label)
+            check_output(ctx, v, label, folder=folder, suffixes=suffixes)
         return value
     return check
 

@@ -14,8 +14,8 @@ from typing import Optional
 import typer
 
 from motok import __version__, progress
-from motok.cli.common import (DataRoot, H5, JsonOut, Sets, choose_mujoco_gl, data_option, existing, number_option,
-                              output_option, print_json, recipe_option, report, results, run, wrote)
+from motok.cli.common import (DataRoot, H5, JsonOut, Sets, check_output, choose_mujoco_gl, data_option, existing,
+                              number_option, output_option, print_json, recipe_option, report, results, run, wrote)
 from motok.cli.control import app as control_app
 from motok.cli.conventions import MotokGroup, examples, renamed
 from motok.cli.eval import app as eval_app
@@ -187,7 +187,8 @@ def export_humanml3d_cmd(
                              "motok plot runs/prior_hybrid runs/prior_continuous --keys eval_success,action_loss "
                              "--x samples --log action_loss -o priors.png",
                              "motok plot runs/gpt --tensorboard runs/tb   (then: tensorboard --logdir runs/tb)"))
-def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its metrics.jsonl; several are drawn "
+def plot(ctx: typer.Context,
+         metrics: list[Path] = typer.Argument(..., help="A run folder or its metrics.jsonl; several are drawn "
                                                           "on the same subplots.", callback=existing),
          out: Optional[Path] = output_option(help="Output .png (default RUN/curves.png; required for several runs).",
                                              suffixes=(".png",), required=False),
@@ -208,7 +209,10 @@ def plot(metrics: list[Path] = typer.Argument(..., help="A run folder or its met
          as_json: bool = JsonOut):
     """Plot training curves from metrics JSONL to PNG: one labelled panel per quantity, its training,
     validation and evaluation values overlaid; several runs on the same subplots to compare them."""
-    from motok.render.plot import plot_run
+    from motok.render.plot import default_output, plot_run
+    if out is None and len(metrics) == 1:  # the default output gets the checks of -o, before any work
+        out = run(default_output, metrics[0])
+        check_output(ctx, out, "-o/--out (default RUN/curves.png)", suffixes=(".png",))
     names = [k.strip() for k in keys.split(",") if k.strip()] if keys else None
     logy = [k.strip() for k in log.split(",") if k.strip()] if log else False
     dst = run(plot_run, list(metrics), out, names, x, label or None, smooth=smooth, x2=x2, missing_ok=missing_ok,

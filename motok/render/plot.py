@@ -227,6 +227,11 @@ def _metrics_file(run_or_jsonl) -> Path:
     return src
 
 
+def default_output(run_or_jsonl) -> Path:
+    """Where ``motok plot RUN`` draws without ``-o``: ``curves.png`` beside the run's metrics."""
+    return _metrics_file(run_or_jsonl).with_name("curves.png")
+
+
 def run_kind(metrics: Path) -> str | None:
     """The kind of the run whose ``metrics.jsonl`` this is (``tokenizer``, ``gpt``, ``control-task``
     ...), from the checkpoint bundle beside it; None for a bare log or a run not saved yet."""
@@ -270,7 +275,7 @@ def plot_run(run_or_jsonl, out_png: str | os.PathLike | None = None, keys: Seque
         raise UserError("several runs: name the comparison's file with -o/--out (a .png)")
     sources = run_sources(runs, labels)
     srcs = list(sources.values())
-    out = Path(out_png) if out_png is not None else srcs[0].with_name("curves.png")
+    out = Path(out_png) if out_png is not None else default_output(srcs[0])
     check_writable(out, suffixes=(".png",))
     kinds = {run_kind(s) for s in srcs}
     kw.setdefault("title", run_title(srcs, list(sources)))

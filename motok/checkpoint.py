@@ -191,6 +191,15 @@ def load_bundle(run: str | Path, kind: str | None = None, with_train_state: bool
     return meta, state, train_state
 
 
+def load_model(run: str | Path, kind: str, build, device: str | torch.device = "cpu"):
+    """``(model, meta)``: the network ``build(meta)`` makes for the bundle in ``run``, with its
+    checked weights, on ``device`` and in eval mode (the loaders of the tokenizer and the GPT)."""
+    meta, state, _ = load_bundle(run, kind)
+    model = build(meta)
+    model.load_state_dict(state)
+    return model.to(device).eval(), meta
+
+
 # --------------------------------------------------------------------------- references
 
 def relative_to(path: str | os.PathLike, folder: str | os.PathLike) -> str:

@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 
 from motok.checkpoint import CheckpointError, load_bundle
+from motok.config import from_dict
 from motok.sim.humanoid import Humanoid, load_humanoid
 
 
@@ -28,6 +29,18 @@ def load_run(run, kind: str) -> tuple[dict, dict, Humanoid]:
     if mjcf_hash(hum) != meta["extra"]["mjcf_sha256"]:
         raise CheckpointError(f"{run}/humanoid.xml does not match the checkpoint's MJCF hash")
     return meta, state, hum
+
+
+def load_run_model(run, kind: str, config_cls, prefix: str, build) -> tuple[object, Humanoid, torch.nn.Module, dict]:
+    """``(cfg, humanoid, model, meta)`` of a control run: its recipe as ``config_cls`` (physics on C
+    MuJoCo, :meth:`~motok.sim.env.SimConfig.portable`), the network ``build(cfg, meta["extra"])``
+    makes, loaded with the bundle's weights under ``prefix`` (``ac.``, ``model.``)."""
+    meta, state, hum = load_run(run, kind)
+    cfg = from_dict(config_cls, meta["config"])
+    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
+    model = build(cfg, meta["extra"])
+    model.load_state_dict(split_state(state, prefix))
+    return cfg, hum, model, meta
 
 
 def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: str | None = None,

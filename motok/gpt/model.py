@@ -39,7 +39,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from motok.checkpoint import load_bundle, register_kind
+from motok.checkpoint import load_model, register_kind
 from motok.config import ConfigError, from_dict
 from motok.optim import OptimConfig
 from motok.ranges import In
@@ -259,8 +259,5 @@ def build_model(cfg: TrainConfig | dict, codebook_size: int, text_dim: int) -> M
 
 def load_gpt(run: str | Path, device: str | torch.device = "cpu") -> tuple[MotionGPT, dict]:
     """A trained GPT in eval mode and its bundle metadata."""
-    meta, state, _ = load_bundle(run, KIND)
-    ex = meta["extra"]
-    model = build_model(meta["config"], int(ex["codebook_size"]), int(ex["text_dim"]))
-    model.load_state_dict(state)
-    return model.to(device).eval(), meta
+    return load_model(run, KIND, lambda meta: build_model(meta["config"], int(meta["extra"]["codebook_size"]),
+                                                          int(meta["extra"]["text_dim"])), device)

@@ -17,7 +17,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from motok.checkpoint import load_bundle, register_kind
+from motok.checkpoint import load_model, register_kind
 from motok.config import from_dict
 from motok.errors import MotokError
 from motok.features.humanml3d import feature_slices
@@ -249,7 +249,4 @@ def build_model(meta_or_cfg: dict | TrainConfig, feature_dim: int) -> VQVAE:
 
 def load_tokenizer(run: str | Path, device: str | torch.device = "cpu") -> tuple[VQVAE, dict]:
     """A trained tokenizer in eval mode and its bundle metadata (config, dataset meta)."""
-    meta, state, _ = load_bundle(run, KIND)
-    model = build_model(meta["config"], int(meta["extra"]["feature_dim"]))
-    model.load_state_dict(state)
-    return model.to(device).eval(), meta
+    return load_model(run, KIND, lambda meta: build_model(meta["config"], int(meta["extra"]["feature_dim"])), device)

@@ -7,7 +7,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from motok.checkpoint import register_kind
-from motok.config import from_dict
 from motok.control import runs
 from motok.control.mdp.actions import ActionConfig
 from motok.control.rl.amp import AMPConfig
@@ -71,10 +70,6 @@ def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: in
 
 
 def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
-    meta, state, hum = runs.load_run(run, KIND)
-    cfg = from_dict(ExpertConfig, meta["config"])
-    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
-    ex = meta["extra"]
-    ac = build_actor_critic(cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
-    ac.load_state_dict(runs.split_state(state, "ac."))
-    return cfg, hum, ac, meta
+    """A trained expert's recipe, humanoid (hash checked), actor-critic and bundle metadata."""
+    return runs.load_run_model(run, KIND, ExpertConfig, "ac.", lambda cfg, ex: build_actor_critic(
+        cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"]))

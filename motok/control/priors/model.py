@@ -35,7 +35,6 @@ import torch
 from torch import Tensor, nn
 
 from motok.checkpoint import register_kind
-from motok.config import from_dict
 from motok.control import runs
 from motok.control.mdp.actions import ActionConfig
 from motok.control.priors.kinds import KINDS, Kind
@@ -285,10 +284,6 @@ class DistillConfig:
 
 def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
     """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""
-    meta, state, hum = runs.load_run(run, KIND)
-    cfg = from_dict(DistillConfig, meta["config"])
-    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
-    ex = meta["extra"]
-    model = LatentPrior(cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"])
-    model.load_state_dict(runs.split_state(state, "model."))
+    cfg, hum, model, meta = runs.load_run_model(run, KIND, DistillConfig, "model.", lambda cfg, ex: LatentPrior(
+        cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"]))
     return cfg, hum, model.eval(), meta

@@ -1,5 +1,6 @@
 """Training plumbing shared by every stage that trains under ``torchrun``: joining and leaving
-the process group, gathering per-rank values, picking the device, and writing a checkpoint
+the process group, gathering per-rank values, averaging gradients over ranks, picking the
+device, and writing a checkpoint
 bundle whose metadata records every rank's state hash (so a divergence is visible)."""
 
 from __future__ import annotations
@@ -57,6 +58,33 @@ def gather(obj, d: Dist) -> list:
     out = [None] * d.world
     dist.all_gather_object(out, obj)
     return out
+
+
+def world_size() -> int:
+    """Ranks in the process group (1 when alone)."""
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+
+
+def average_gradients(params: list[torch.Tensor]) -> None:
+    """All-reduce mean of the gradients over ranks, flattened into one collective: what DDP would do,
+    for the trainers that step their own optimisers (PPO, AMP's discriminator, distillation)."""
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= world_size()
+    o = 0
+    for g in grads:
+        g.copy_(flat[o:o + g.numel()].view_as(g))
+        o += g.numel()
+
+
+def average_scalar(x: torch.Tensor) -> torch.Tensor:
+    """The mean of ``x`` over ranks (a collective: every rank calls it)."""
+    y = x.detach().clone().reshape(1)
+    dist.all_reduce(y)
+    return y[0] / world_size()
 
 
 def pick_device(name: str, d: Dist, error: type[Exception] = ValueError) -> torch.device:

@@ -18,7 +18,8 @@ from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitati
 from motok.control.mdp.terminations import tracking_failure
 from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
 from motok.control.rl.policies import MultiCategoricalPolicy
-from motok.control.rl.ppo import PPO, PPOConfig, Rollout
+from motok.control.rl.ppo import PPO, PPOConfig
+from motok.control.rl.rollout import Rollout
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.sim.env import HumanoidEnv, SimConfig

@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from motok.control.rl.amp import AMP, AMPConfig, ReplayBuffer, gradient_penalty, style_reward
-from motok.control.rl.networks import RunningNorm
+from motok.control.rl.networks import ActorCritic, RunningNorm
 from motok.control.rl.policies import EncoderDecoderPolicy
-from motok.control.rl.ppo import PPOConfig, Rollout, gae, kl_warning, learning_rate, policy_loss, value_loss
+from motok.control.rl.ppo import PPO, PPOConfig, gae, kl_warning, learning_rate
+from motok.control.rl.rollout import Rollout
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -41,26 +42,54 @@ def test_gae_three_steps_with_termination_and_truncation():
     assert adv2[:, 0].tolist() == pytest.approx([d0 + g * lam * e1, e1, e2])
 
 
+class _Constant(torch.nn.Module):
+    """A policy whose log-probability of every action, or a critic whose value of every state, is
+    one parameter: the update's losses then have gradients by hand."""
+
+    def __init__(self, value: float):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.tensor(value))
+
+    def evaluate(self, x, a):
+        return self.w.expand(len(x)), torch.zeros(len(x))
+
+    def forward(self, x):
+        return self.w.expand(len(x))
+
+
+def _one_step_update(logp: float, old_logp: float, reward: float, v: float, old_v: float,
+                     **cfg) -> tuple[PPO, dict]:
+    """One PPO update on a one-step rollout of two alike environments (one minibatch) whose advantage
+    is ``reward - old_v`` (gamma 0, the advantage not normalised), with the policy's log-probability
+    ``logp`` and the critic's value ``v``."""
+    ac = ActorCritic(RunningNorm(1), _Constant(logp), _Constant(v))
+    ppo = PPO(ac, PPOConfig(epochs=1, minibatch_size=2, gamma=0.0, norm_adv=False, max_grad_norm=1e9, **cfg), 1)
+    ro = Rollout(1, 2, 1, (1,))
+    ro.logp[:], ro.rewards[:], ro.values[:] = old_logp, reward, old_v
+    return ppo, ppo.update(ro, torch.zeros(2), 0)
+
+
 @pytest.mark.parametrize("ratio,adv,zero", [(1.5, 1.0, True), (0.5, -1.0, True), (1.1, 1.0, False),
                                             (0.5, 1.0, False), (1.5, -1.0, False), (0.9, -1.0, False)])
 def test_clipped_objective_gradient_is_zero_outside_the_clip_range(ratio, adv, zero):
-    old = torch.tensor([0.3])
-    logp = (old + math.log(ratio)).clone().requires_grad_(True)
-    loss, kl, frac = policy_loss(logp, old, torch.tensor([adv]), clip=0.2)
-    loss.backward()
+    old = 0.3
+    ppo, st = _one_step_update(old + math.log(ratio), old, adv, 0.0, 0.0, clip=0.2)
+    grad = ppo.ac.policy.w.grad.item()
     if zero:  # left the trust region in the direction the advantage favours: no more push
-        assert logp.grad.item() == 0.0
-        assert loss.item() == pytest.approx(-adv * (1.2 if adv > 0 else 0.8))
+        assert grad == 0.0
+        assert st["policy_loss"] == pytest.approx(-adv * (1.2 if adv > 0 else 0.8))
     else:  # d(-rho A)/d logp = -rho A
-        assert logp.grad.item() == pytest.approx(-ratio * adv)
-    assert frac.item() == float(abs(ratio - 1) > 0.2)
-    assert kl.item() == pytest.approx((ratio - 1) - math.log(ratio), rel=1e-4)
+        assert grad == pytest.approx(-ratio * adv, rel=1e-5)
+    assert st["clip_frac"] == float(abs(ratio - 1) > 0.2)
+    assert st["approx_kl"] == pytest.approx((ratio - 1) - math.log(ratio), rel=1e-4, abs=1e-7)
 
 
 def test_value_loss_clipping_and_lr_schedules():
-    v, old, ret = torch.tensor([2.0]), torch.tensor([1.0]), torch.tensor([3.0])
-    assert value_loss(v, old, ret, None).item() == pytest.approx(0.5)
-    assert value_loss(v, old, ret, 0.2).item() == pytest.approx(0.5 * (3.0 - 1.2) ** 2)  # the pessimistic one
+    # V = 2 against a return of 3, where the rollout's value was 1: 0.5 unclipped; clipped to
+    # 1 + 0.2, the pessimistic of the two
+    assert _one_step_update(0.0, 0.0, 3.0, 2.0, 1.0)[1]["value_loss"] == pytest.approx(0.5)
+    clipped = _one_step_update(0.0, 0.0, 3.0, 2.0, 1.0, clip_value=True, value_clip=0.2)[1]["value_loss"]
+    assert clipped == pytest.approx(0.5 * (3.0 - 1.2) ** 2)
     c = PPOConfig(lr=1.0, lr_min=0.1)
     assert learning_rate(c, 5, 10) == 1.0
     c.lr_schedule = "linear"

@@ -40,10 +40,9 @@ from motok.control.priors.kinds import KINDS
 from motok.control.priors.model import KIND, DistillConfig, LatentPrior, Latents, squared_norm
 from motok.control.rl import runner
 from motok.control.rl.networks import ActorCritic
-from motok.control.rl.ppo import average_gradients, world_size
 from motok.control.tasks.imitation import eval_metrics, evaluate, subset
 from motok.data.dataset import select_clips
-from motok.distributed import Dist
+from motok.distributed import Dist, average_gradients, world_size
 from motok.errors import UserError
 from motok.sim.humanoid import Humanoid, load_humanoid
 from motok.sim.reference import ReferenceLibrary

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from motok.control.rl.networks import mlp
-from motok.control.rl.ppo import average_gradients, world_size
+from motok.distributed import average_gradients, world_size
 from motok.ranges import In
 from motok.sim.obs import Bodies, observation
 

@@ -1,4 +1,4 @@
-"""One rollout collector for every PPO trainer of the control stage.
+"""One rollout collector for every PPO trainer of the control stage, and the buffer it fills.
 
 Per iteration, ``horizon`` steps of every environment of a :class:`~motok.control.mdp.task_env.TaskEnv`:
 the policy input ``[s, s~]`` (Eq. 7 and the task's goal) is normalised by the running statistics
@@ -23,7 +23,6 @@ import torch
 
 from motok.arrays import xp
 from motok.control.rl.networks import ActorCritic
-from motok.control.rl.ppo import Rollout
 from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 
@@ -34,6 +33,31 @@ def as_tensor(a) -> torch.Tensor:
     if isinstance(a, torch.Tensor):
         return torch.nan_to_num(a.to(torch.float32))
     return torch.as_tensor(np.nan_to_num(np.asarray(a, dtype=np.float32)))
+
+
+class Rollout:
+    """``(T, N, .)`` storage for one iteration, what :meth:`motok.control.rl.ppo.PPO.update` reads.
+    ``x`` is the normalised policy input; actions keep the policy's shape and dtype (``(A,)`` float
+    for a Gaussian, ``(M,)`` int64 for codebook indices)."""
+
+    def __init__(self, horizon: int, num_envs: int, in_dim: int, action_shape: tuple[int, ...],
+                 action_dtype: torch.dtype = torch.float32, device=None):
+        T, N = horizon, num_envs
+        z = lambda *shape, dtype=torch.float32: torch.zeros(*shape, dtype=dtype, device=device)  # noqa: E731
+        self.x = z(T, N, in_dim)
+        self.actions = z(T, N, *action_shape, dtype=action_dtype)
+        self.logp = z(T, N)
+        self.values = z(T, N)
+        self.rewards = z(T, N)
+        self.final_values = z(T, N)  # V(final observation) of truncated steps
+        self.terminated = z(T, N, dtype=torch.bool)
+        self.truncated = z(T, N, dtype=torch.bool)
+
+    def next_values(self, last_value: torch.Tensor) -> torch.Tensor:
+        """``V`` of the state each step reached: the following step's value inside an episode,
+        the stored final value after a truncation, ``last_value`` after the last step."""
+        nv = torch.cat([self.values[1:], last_value[None]], 0)
+        return torch.where(self.truncated, self.final_values, nv)
 
 
 class RewardHook(Protocol):

@@ -213,7 +213,7 @@ def kinematics(hum, lib, repeats: int) -> None:
     """The reference library's kinematics (``body_states``: body states and lowest points of every
     frame) against MuJoCo's three kinematics calls alone in the same per-frame loop, the floor any
     per-frame use of MjData has: their ratio is what the library adds to MuJoCo."""
-    from motok.sim.reference import body_states
+    from motok.sim.kinematics import body_states
 
     q, v = lib.qpos, lib.qvel
     m, d = hum.model, mujoco.MjData(hum.model)

@@ -19,7 +19,8 @@ from motok.control.mdp.rewards import ImitationConfig, imitation_errors, imitati
 from motok.errors import UserError
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.sim.env import SimConfig
-from motok.sim.reference import ReferenceLibrary, body_states, load_library
+from motok.sim.kinematics import body_states
+from motok.sim.reference import ReferenceLibrary, load_library
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")

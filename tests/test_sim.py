@@ -12,7 +12,8 @@ from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import HumanoidError, load_humanoid, to_mj
 from motok.sim.obs import TreeKinematics, observation
-from motok.sim.reference import ReferenceError, body_states, build_library, load_library
+from motok.sim.kinematics import body_states
+from motok.sim.reference import ReferenceError, build_library, load_library
 
 runner = CliRunner()
 

@@ -81,3 +81,20 @@ def test_a_ball_model_renders_as_its_humanoid(hum, tmp_path):
     a = iio.imread(render_trajectory(hum, q, tmp_path / "plain.mp4", 30.0)[0]).astype(float)
     b = iio.imread(render_trajectory(balls, qb, tmp_path / "balls.mp4", 30.0)[0]).astype(float)
     assert np.abs(a - b).mean() < 1.0  # grey levels of 255: the same picture up to video coding
+
+
+def test_without_gl_the_stick_figure_stands_in_unless_mujoco_is_asked_for(hum, tmp_path, monkeypatch):
+    import motok.sim.render as render
+
+    def no_gl(*args, **kwargs):
+        raise OSError("no EGL display")
+        yield  # a generator, as the MuJoCo one is
+
+    monkeypatch.setattr(render, "_frames_mujoco", no_gl)
+    qpos = np.repeat(hum.model.qpos0[None], 3, 0)
+    out, backend = render_trajectory(hum, qpos, tmp_path / "auto.gif", 30.0)
+    assert backend == "stick" and out.is_file()
+    with pytest.raises(RuntimeError, match=r"failed \(no EGL display\); set MUJOCO_GL"):
+        render_trajectory(hum, qpos, tmp_path / "mujoco.gif", 30.0, backend="mujoco")
+    assert not (tmp_path / "mujoco.gif").exists()
+    assert render_trajectory(hum, qpos, tmp_path / "stick.gif", 30.0, backend="stick")[1] == "stick"

@@ -19,14 +19,10 @@ import numpy as np
 
 from motok.errors import UserError
 from motok.render.video import gif_stride, write_video
-from motok.sim.humanoid import Humanoid
+from motok.sim.humanoid import Humanoid, from_mj
+from motok.sim.kinematics import body_states
 
 SUFFIXES = (".mp4", ".gif")
-
-
-def to_data(v: np.ndarray) -> np.ndarray:
-    """MuJoCo coordinates back to the dataset's (Y up, facing +Z): inverse of ``to_mj``."""
-    return np.asarray(v)[..., [1, 2, 0]]
 
 
 def _add_markers(scn, pos: np.ndarray, rgba: np.ndarray, radius: float) -> None:
@@ -159,24 +155,29 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
             raise UserError(f"markers must have shape (T, K, 3), not {pos.shape}")
         rgba = np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,))
         mk = (pos, rgba, float(marker_radius))
-    if backend in ("auto", "mujoco"):
-        try:
-            frames = _frames_mujoco(hum, qpos, size, ghost, title, mk)
-            first = next(frames)
-        except Exception as e:  # no GL at all (no EGL/OSMesa, no display): draw the stick figure instead
-            if backend == "mujoco":
-                raise RuntimeError(f"MuJoCo offscreen rendering failed ({e}); set MUJOCO_GL=egl or osmesa") from e
-        else:
-            def chain():
-                yield first
-                yield from frames
-            step = gif_stride(fps) if out.suffix.lower() == ".gif" else 1
-            write_video(itertools.islice(chain(), 0, None, step), out, fps / step)
-            return out, "mujoco"
-    from motok.render.stick import render_motion
-    from motok.sim.reference import body_states
+    mujoco = backend in ("auto", "mujoco")
+    frames = _mujoco_frames(hum, qpos, size, ghost, title, mk, required=backend == "mujoco") if mujoco else None
+    if frames is None:  # asked for, or MuJoCo cannot draw here: the stick figure of the body positions
+        from motok.render.stick import render_motion
 
-    joints = to_data(body_states(hum, qpos, np.zeros((len(qpos), hum.model.nv)))["body_pos"])
-    render_motion(joints, hum.skeleton.parents, out, fps=fps, title=title if title is None or isinstance(title, str)
-                  else title[0], size=size)
-    return out, "stick"
+        joints = from_mj(body_states(hum, qpos, np.zeros((len(qpos), hum.model.nv)))["body_pos"])
+        render_motion(joints, hum.skeleton.parents, out, fps=fps,
+                      title=title if title is None or isinstance(title, str) else title[0], size=size)
+        return out, "stick"
+    step = gif_stride(fps) if out.suffix.lower() == ".gif" else 1
+    write_video(itertools.islice(frames, 0, None, step), out, fps / step)
+    return out, "mujoco"
+
+
+def _mujoco_frames(hum: Humanoid, qpos: np.ndarray, size, ghost, title, markers, required: bool):
+    """The frames of :func:`render_trajectory` drawn by MuJoCo, the first one drawn now so that a
+    machine without a GL backend (no EGL/OSMesa, no display) shows before any file is written: then
+    None, for the stick figure to stand in, or an error where MuJoCo is ``required``."""
+    try:
+        frames = _frames_mujoco(hum, qpos, size, ghost, title, markers)
+        first = next(frames)
+    except Exception as e:  # whatever the GL stack raises, the stick figure can still draw
+        if required:
+            raise RuntimeError(f"MuJoCo offscreen rendering failed ({e}); set MUJOCO_GL=egl or osmesa") from e
+        return None
+    return itertools.chain([first], frames)

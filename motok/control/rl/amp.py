@@ -40,9 +40,9 @@ class AMPConfig:
     weight_decay: In[float, ">= 0"] = 1e-4  # L2 on the discriminator's weights
     grad_penalty: In[float, ">= 0"] = 5.0  # w_gp of the zero-centred gradient penalty on reference inputs
     logit_reg: In[float, ">= 0"] = 0.01  # L2 on the last layer's weights: keeps logits from saturating
-    batch_size: In[int, ">= 1"] = 512
+    batch_size: In[int, ">= 1"] = 512  # reference and policy transitions per minibatch (policy: half replayed)
     updates: In[int, ">= 0"] = 8  # discriminator minibatches per PPO iteration
-    replay_size: In[int, ">= 1"] = 100_000
+    replay_size: In[int, ">= 1"] = 100_000  # older policy transitions kept, so the discriminator does not forget
     style_scale: In[float, ">= 0"] = 5.0  # r_style = -style_scale log(1 - D)
 
 

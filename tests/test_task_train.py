@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from motok.checkpoint import CheckpointError
 from motok.control.priors.model import DistillConfig, load_prior
-from motok.control.highlevel.policy import HighLevelNetConfig, LatentActionMap, build_high_level
+from motok.control.highlevel.policy import HighLevelNetConfig, LatentActionMap, build_high_level, task_codebooks
 from motok.control.mdp.resets import reference_state
 from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
 from motok.control.priors.model import LatentPrior
@@ -102,6 +102,30 @@ def test_the_high_level_action_space_follows_the_prior(hum, walk_lib):
         build_high_level(net, random_prior("hybrid", env), env.obs_dim, 2, 5)
     with pytest.raises(UserError, match="no codebooks"):
         build_high_level(net, random_prior("continuous", env), env.obs_dim, 2, 1)
+
+
+def test_each_task_learns_over_its_papers_active_codebooks(hum, walk_lib, tiny_prior, tmp_path):
+    """Tables 6-8: in-betweening over 1 active codebook, head tracking over 2, navigation over 1. A
+    recipe's ``codebooks: null`` is the task's default (at most the prior's; all for a task the
+    paper does not have), an explicit number wins, and the default reaches the policy's action
+    space: a new run saves it resolved and resumes with it."""
+    env = standing_env(hum, walk_lib, 1)
+    hybrid = random_prior("hybrid", env)  # 4 codebooks
+    assert [task_codebooks(hybrid, t, None) for t in ("inbetween", "hmd", "navigation", "steering")] == [1, 2, 1, 4]
+    assert task_codebooks(hybrid, "hmd", 3) == 3 and task_codebooks(random_prior("continuous", env), "hmd", None) is None
+    assert task_codebooks(random_prior("discrete", env), "hmd", None) == 1  # one codebook: all it has
+    net = HighLevelNetConfig(policy=[16], value=[16])
+    assert build_high_level(net, hybrid, env.obs_dim, 2, task_codebooks(hybrid, "hmd", None)).policy.heads == 2
+    cfg = small_cfg(iterations=2, save_every=1, task="hmd")
+    cfg.env.num_envs, cfg.tasks.hmd.episode_seconds = 4, 1.0
+    cfg.ppo = replace(cfg.ppo, horizon=4, minibatch_size=16, epochs=1)
+    assert cfg.codebooks is None
+    train_from_prior(replace(cfg), tiny_prior, tmp_path / "hmd", until=1)
+    train_from_prior(replace(cfg), tiny_prior, tmp_path / "hmd", resume=True)  # the recipe's null again
+    saved, _, ac, model, _, meta = load_task_run(tmp_path / "hmd")
+    rows = [json.loads(x) for x in (tmp_path / "hmd" / "metrics.jsonl").read_text().splitlines()]
+    assert model.num_codebooks == 4 and saved.codebooks == 2 and [r["iteration"] for r in rows] == [1, 2]
+    assert meta["extra"]["high_level_action"]["codebooks"] == 2 and ac.policy.heads == 2
 
 
 # ---------------------------------------------------------------------- PPO over the prior

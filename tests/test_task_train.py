@@ -21,7 +21,7 @@ from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
 from motok.control.priors.model import LatentPrior
 from motok.control.highlevel.policy import TaskTrainConfig, load_task_run
 from motok.control.highlevel.evaluate import evaluate_run
-from motok.control.highlevel.train import TaskTrainer, train_from_prior
+from motok.control.highlevel.train import TaskTrainer, ppo_config, train_from_prior
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.reference import load_library
@@ -116,6 +116,9 @@ def test_each_task_learns_over_its_papers_active_codebooks(hum, walk_lib, tiny_p
     assert task_codebooks(random_prior("discrete", env), "hmd", None) == 1  # one codebook: all it has
     net = HighLevelNetConfig(policy=[16], value=[16])
     assert build_high_level(net, hybrid, env.obs_dim, 2, task_codebooks(hybrid, "hmd", None)).policy.heads == 2
+    # the continuous prior's own learning rate; the categorical policies keep ppo.lr
+    lrs = TaskTrainConfig(continuous_lr=5e-5)
+    assert ppo_config(lrs, random_prior("continuous", env)).lr == 5e-5 and ppo_config(lrs, hybrid).lr == lrs.ppo.lr
     cfg = small_cfg(iterations=2, save_every=1, task="hmd")
     cfg.env.num_envs, cfg.tasks.hmd.episode_seconds = 4, 1.0
     cfg.ppo = replace(cfg.ppo, horizon=4, minibatch_size=16, epochs=1)
@@ -126,6 +129,21 @@ def test_each_task_learns_over_its_papers_active_codebooks(hum, walk_lib, tiny_p
     rows = [json.loads(x) for x in (tmp_path / "hmd" / "metrics.jsonl").read_text().splitlines()]
     assert model.num_codebooks == 4 and saved.codebooks == 2 and [r["iteration"] for r in rows] == [1, 2]
     assert meta["extra"]["high_level_action"]["codebooks"] == 2 and ac.policy.heads == 2
+
+
+def test_configs_saved_before_the_papers_protocol_keep_what_they_did():
+    """A run saved before a protocol setting existed resumes and evaluates as it trained: the keys
+    it lacks take the values it ran with, not the paper's new defaults; a new config has the paper's."""
+    from motok.config import from_dict, to_dict
+
+    old = to_dict(TaskTrainConfig())
+    del old["continuous_lr"], old["tasks"]["inbetween"]["keyframe_selection"]
+    del old["tasks"]["navigation"]["full_reward_on_arrival"]
+    was, now = from_dict(TaskTrainConfig, old), TaskTrainConfig()
+    assert (was.continuous_lr, was.tasks.inbetween.keyframe_selection, was.tasks.navigation.full_reward_on_arrival) \
+        == (None, "uniform", False)
+    assert (now.continuous_lr, now.tasks.inbetween.keyframe_selection, now.tasks.navigation.full_reward_on_arrival) \
+        == (None, "still", True)
 
 
 # ---------------------------------------------------------------------- PPO over the prior

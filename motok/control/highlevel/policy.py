@@ -154,6 +154,8 @@ class TaskTrainConfig:
     # recipes raise ppo.lr for the categorical policies and keep this at Tables 6-8's 5e-5.
     continuous_lr: In[float | None, "> 0"] = None
 
+    # What a config saved before a key existed did (motok.config.from_dict): ppo.lr for every prior.
+    KEYS_ADDED = {"continuous_lr": None}
     # Taken from the prior when a run starts and saved resolved: a resume's recipe may leave them out.
     RESUME_DERIVED = ("env.control_hz", "env.target_filter", "codebooks")
 

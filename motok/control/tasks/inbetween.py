@@ -75,6 +75,9 @@ class InbetweenTaskConfig:
     early_termination: bool = True
     reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)  # Eq. 14's weights and exponents
 
+    # What a config saved before a key existed did (motok.config.from_dict): uniform keyframes.
+    KEYS_ADDED = {"keyframe_selection": "uniform"}
+
     def __post_init__(self):
         if not self.window_seconds > 0:
             raise UserError(f"inbetween task: window_seconds must be > 0, got {self.window_seconds}")

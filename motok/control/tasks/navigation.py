@@ -61,6 +61,10 @@ class NavigationTaskConfig:
     early_termination: bool = True
     head_body: str | None = None  # the body tested for falls; None: the skeleton's head joint
 
+    # What a config saved before a key existed did (motok.config.from_dict): the velocity term alone was
+    # full within the radius.
+    KEYS_ADDED = {"full_reward_on_arrival": False}
+
     def __post_init__(self):
         for name in ("episode_seconds", "retarget_seconds", "reach_radius"):
             if not getattr(self, name) > 0:

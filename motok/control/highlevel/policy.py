@@ -5,11 +5,13 @@ The prior's decoder ``pi_low(s, z_bar)`` is frozen; a new policy ``pi_high(s, g)
 proprioception ``s`` (Eq. 7) and the task goal ``g`` and chooses the latent:
 
 * ``discrete``, ``hybrid-vq``: one categorical over the codebook;
-* ``discrete+``, ``hybrid``: one categorical per active codebook (the first ``M``), independent
-  given the input; ``z_bar`` is the sum of the chosen codes, plus ``z_p(s)`` for the hybrid
-  (section 4.1: the codes are codes of the margin to the prior);
-* ``continuous``: a Gaussian offset ``u`` with a fixed exploration std (a recipe value; the
-  paper's Fig. 4 right shows the result depends on it), ``z = mu_p(s) + u`` (Eq. 2's prior mean).
+* ``discrete+``, ``hybrid``: one categorical per active codebook (the first ``M``: the task's
+  paper default, Tables 6-8, unless the run gives ``codebooks``), independent given the input;
+  ``z_bar`` is the sum of the chosen codes, plus ``z_p(s)`` for the hybrid (section 4.1: the codes
+  are codes of the margin to the prior);
+* ``continuous``: a Gaussian offset ``u`` with a fixed exploration std (``net.std``, 0.04 as the
+  authors' code fixes it; the paper's Fig. 4 right shows the result depends on it),
+  ``z = mu_p(s) + u`` (Eq. 2's prior mean).
 
 The environment sees the decoder's action: :class:`LatentActionMap` is the action map of
 ``motok.control.mdp.task_env.TaskEnv`` that turns the high-level action into PD targets on the
@@ -139,7 +141,7 @@ class TaskTrainConfig:
     # Tables 6-8: in-betweening 1, head tracking 2, navigation 1; at most the prior's), saved resolved
     # when a run starts. Runs saved before that resolution held None for all of them, and still do.
     codebooks: In[int | None, ">= 1"] = None
-    save_every: In[int, ">= 1"] = 50
+    save_every: In[int, ">= 1"] = 50  # iterations between checkpoints
     eval_every: In[int, ">= 0"] = 0  # iterations between task evaluations logged as eval_* (0: never)
     eval_episodes: In[int, ">= 1"] = 64
     deterministic_eval: bool = True  # evaluate with the most likely action (argmax codes, the mean offset)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from motok.control.mdp.keyframes import (InbetweenRewardConfig, body_speed, inbetween_errors, inbetween_reward,
+from motok.control.mdp.keyframes import (InbetweenRewardConfig, pose_speed, inbetween_errors, inbetween_reward,
                                          keyframe_goal, next_keyframe, sample_keyframes, sample_still_keyframes,
                                          still_frames, time_encoding)
 from motok.control.mdp.resets import reference_bodies
@@ -64,13 +64,15 @@ def test_still_frames_are_the_local_minima_of_speed():
 
 def test_zero_velocity_keyframes_on_a_real_clip(lib):
     """C.1's keyframes are zero-velocity poses: on a real 4 s window, each interior keyframe is a
-    frame where the mean body speed, computed here body by body, is a local minimum; every such
-    frame the spacing allows is drawn, and no other."""
+    frame where the pose's speed (each body's speed relative to the root, averaged over the
+    bodies; computed here body by body) is a local minimum; every such frame the spacing allows is
+    drawn, and no other."""
     c = int(np.argmax(lib.lengths))
     g = lib.starts[c] + 10 + np.arange(120)
-    speed = np.array([np.mean([math.sqrt(sum(v * v for v in lib.body_vel[i, j])) for j in range(lib.body_vel.shape[1])])
-                      for i in g])
-    assert np.allclose(body_speed(lib.body_vel[g]), speed)
+    J = lib.body_vel.shape[1]
+    speed = np.array([np.mean([math.sqrt(sum((lib.body_vel[i, j, a] - lib.body_vel[i, 0, a]) ** 2 for a in range(3)))
+                               for j in range(1, J)]) for i in g])
+    assert np.allclose(pose_speed(lib.body_vel[g]), speed)
     hand = [t for t in range(1, 119) if speed[t] <= speed[t - 1] and speed[t] <= speed[t + 1]]
     assert len(hand) >= 6  # a walk comes to rest about twice a second
     k = sample_still_keyframes(np.random.default_rng(0), np.tile(speed, (3000, 1)), 4, 15)
@@ -257,9 +259,9 @@ def test_random_windows_fit_their_clips_and_bad_inputs_are_named(hum, lib):
     assert (t.keyframes[:, 0] == t.start).all() and (t.keyframes[:, -1] == t.start + 119).all()
     assert (t.keyframes[:, -1] <= lib.lengths[t.clip] - 1).all() and (np.diff(t.keyframes, axis=1) >= 15).all()
     assert len(np.unique(t.keyframes[:, 1] - t.start)) > 10  # the keyframes differ between windows
-    # the interior ones are zero-velocity poses: local minima of their clip's mean body speed, or
+    # the interior ones are zero-velocity poses: local minima of their clip's pose speed, or
     # the slowest frame of a stretch the spacing allows that has none
-    speed, still = body_speed(lib.body_vel), 0
+    speed, still = pose_speed(lib.body_vel), 0
     for i in range(64):
         s = speed[lib.frame_index(t.clip[i], t.start[i] + np.arange(120))]
         k = t.keyframes[i] - t.start[i]

@@ -6,7 +6,7 @@ reference window at their frames.
   also the first keyframe. ``num_keyframes`` keyframes in all: the start, interior keyframes at
   least ``min_keyframe_gap_seconds`` apart, the window's last frame. The interior ones are
   zero-velocity poses (C.1; ``keyframe_selection="still"``, ``mdp.keyframes.sample_still_keyframes``:
-  local minima of the reference's mean body speed) or, with ``"uniform"``, any frames (the fork's
+  local minima of the reference's pose speed) or, with ``"uniform"``, any frames (the fork's
   draw, ``sample_keyframes``). Training uses 4 per 4 s window (C.1); the paper's Table 2 evaluates
   with 5 per 4 s, which ``eval_keyframes`` holds and :func:`evaluate_inbetween` switches to;
 * goal: Eq. 12 position and rotation differences to two keyframes, plus (added to them, as the
@@ -36,9 +36,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motok.arrays import copy, is_tensor, like, take_along, xp
-from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfig, body_speed, check_keyframe_count,
+from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfig, check_keyframe_count,
                                          check_keyframes, inbetween_errors, inbetween_reward, keyframe_goal,
-                                         next_keyframe, sample_keyframes, sample_still_keyframes, time_encoding)
+                                         next_keyframe, pose_speed, sample_keyframes, sample_still_keyframes,
+                                         time_encoding)
 from motok.control.mdp.resets import (ClipProbabilities, check_rate, given_starts, host_lengths, reference_bodies,
                                       reference_state, sample_starts)
 from motok.control.mdp.task_env import Task, TaskEnv
@@ -62,7 +63,7 @@ class InbetweenTaskConfig:
     num_keyframes: In[int, ">= 2"] = 4  # per window, the start and the window's last frame included (C.1, training)
     eval_keyframes: In[int, ">= 2"] = 5  # per window in evaluation (Table 2)
     min_keyframe_gap_seconds: In[float, ">= 0"] = 0.5  # the fork's 15 frames at 30 Hz
-    # Interior keyframes: "still", zero-velocity poses (C.1: local minima of the mean body speed);
+    # Interior keyframes: "still", zero-velocity poses (C.1: local minima of the pose's speed);
     # "uniform", any frames (the fork's full_random_long draw)
     keyframe_selection: str = "still"
     # "previous": the interval's start and goal keyframes (Eq. 12-13; the fork's too); "next": the goal
@@ -122,7 +123,7 @@ class InbetweenTask(Task):
         self.set_keyframe_count(cfg.num_keyframes)
         self._goal = like(lib.qpos, np.zeros((N, self.goal_dim)))
         self._host_lengths = host_lengths(lib)  # to check given starts on the host
-        self._speed = body_speed(lib.body_vel)  # (F,) mean body speed per library frame: the still keyframes
+        self._speed = pose_speed(lib.body_vel)  # (F,) the pose's speed per library frame: the still keyframes
 
     def set_keyframe_count(self, count: int) -> None:
         """Keyframes per window from now on (e.g. ``cfg.eval_keyframes``); every environment must be

@@ -104,7 +104,14 @@ def _renamed(cls, d: dict, where: str) -> dict:
 
 
 def from_dict(cls: type[T], d: dict, where: str = "config") -> T:
+    """``cls`` from the mapping ``d``. A key of ``cls.KEYS_ADDED`` that ``d`` lacks (a config saved
+    before the key existed) takes the value listed there, the one that reproduces what that config
+    did, not the key's default, which may be a newer protocol's."""
     d = _renamed(cls, d, where)
+    if isinstance(d, dict):
+        for k, v in getattr(cls, "KEYS_ADDED", {}).items():
+            if k not in d:
+                d[k] = copy.deepcopy(v)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)

@@ -8,8 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from motok.control.mdp.keyframes import (InbetweenRewardConfig, inbetween_errors, inbetween_reward, keyframe_goal,
-                                         next_keyframe, sample_keyframes, time_encoding)
+from motok.control.mdp.keyframes import (InbetweenRewardConfig, pose_speed, inbetween_errors, inbetween_reward,
+                                         keyframe_goal, next_keyframe, sample_keyframes, sample_still_keyframes,
+                                         still_frames, time_encoding)
+from motok.control.mdp.resets import reference_bodies
+from motok.control.mdp.terminations import body_distances, tracking_failure
 from motok.control.tasks.episodes import EpisodeErrors, summary
 from motok.control.tasks.inbetween import evaluate_inbetween
 from motok.control.mdp.task_env import TaskEnv
@@ -47,6 +50,39 @@ def test_keyframe_sampling_count_order_window_and_spacing():
     for count in (1, 10):
         with pytest.raises(UserError, match="num_keyframes"):
             sample_keyframes(rng, 1, count, 121, 15)
+
+
+def test_still_frames_are_the_local_minima_of_speed():
+    speed = np.array([[3.0, 1.0, 2.0, 2.0, 0.5, 4.0, 1.0, 1.0, 5.0]])
+    # by hand: 1 (1 <= 3, 1 <= 2), 4 (0.5 under both), 6 and 7 (a flat minimum: <= on both sides);
+    # 3 is not (2 > 0.5), nor the window's ends (one neighbour only)
+    assert np.flatnonzero(still_frames(speed)[0]).tolist() == [1, 4, 6, 7]
+    # no still frame in a stretch: its slowest frame, the first one it allows on a rising speed
+    rising = np.arange(40, dtype=float)[None] ** 2
+    assert sample_still_keyframes(np.random.default_rng(0), rising, 4, 10).tolist() == [[0, 10, 20, 39]]
+
+
+def test_zero_velocity_keyframes_on_a_real_clip(lib):
+    """C.1's keyframes are zero-velocity poses: on a real 4 s window, each interior keyframe is a
+    frame where the pose's speed (each body's speed relative to the root, averaged over the
+    bodies; computed here body by body) is a local minimum; every such frame the spacing allows is
+    drawn, and no other."""
+    c = int(np.argmax(lib.lengths))
+    g = lib.starts[c] + 10 + np.arange(120)
+    J = lib.body_vel.shape[1]
+    speed = np.array([np.mean([math.sqrt(sum((lib.body_vel[i, j, a] - lib.body_vel[i, 0, a]) ** 2 for a in range(3)))
+                               for j in range(1, J)]) for i in g])
+    assert np.allclose(pose_speed(lib.body_vel[g]), speed)
+    hand = [t for t in range(1, 119) if speed[t] <= speed[t - 1] and speed[t] <= speed[t + 1]]
+    assert len(hand) >= 6  # a walk comes to rest about twice a second
+    k = sample_still_keyframes(np.random.default_rng(0), np.tile(speed, (3000, 1)), 4, 15)
+    assert (k[:, 0] == 0).all() and (k[:, -1] == 119).all() and (np.diff(k, axis=1) >= 15).all()
+    assert set(k[:, 1:3].ravel().tolist()) <= set(hand)
+    # the first interior keyframe: uniform over the still frames from 15 to 119 - 2 * 15
+    first = [t for t in hand if 15 <= t <= 89]
+    assert sorted(set(k[:, 1].tolist())) == first
+    share = np.bincount(k[:, 1], minlength=120)[first] / len(k)
+    assert np.abs(share - 1 / len(first)).max() < 0.03
 
 
 def test_time_encoding_hand_values():
@@ -117,10 +153,24 @@ def test_reward_is_maximal_on_the_reference_and_lower_off_it(hum, lib):
     assert r["r_task"][1] == 0.0 and r["r_task"][0] == pytest.approx(1.0) and term.tolist() == [False, True]
 
 
+def test_one_body_far_fails_the_maximum_test_and_not_the_mean(lib):
+    """B.1 / C.1: a body more than 0.5 m from its reference fails; on a real reference pose with one
+    body 0.6 m off and the others exact, the maximum is 0.6 m and the mean 0.6 / J."""
+    ref = reference_bodies(lib, np.array([0, 0]), np.array([5, 5]))
+    pos = ref.pos.copy()
+    pos[1, 7, 1] += 0.6  # environment 1: body 7 moved 0.6 m along y
+    dist = body_distances(Bodies(pos, ref.vel, ref.angvel, quat=ref.quat), ref)
+    assert dist[0].max() == 0.0 and dist[1, 7] == pytest.approx(0.6) and dist[1].mean() == pytest.approx(0.6 / 21)
+    assert tracking_failure(dist, "any", 0.5).tolist() == [False, True]
+    assert tracking_failure(dist, "mean", 0.5).tolist() == [False, False]
+    assert InbetweenTaskConfig().termination == "any" and InbetweenTaskConfig().termination_distance == 0.5
+
+
 def test_termination_at_the_body_distance(hum, lib):
     """The whole body 0.45 / 0.55 m off ends only the second episode; a flung arm (one body far,
-    the mean small) ends it on the "any" test and not on the "mean" one (the default)."""
-    mdp, strict = _mdp(hum, lib, 3), _mdp(hum, lib, 3, termination="any")
+    the mean small) ends it on the "any" test (the default: B.1 and C.1's maximum distance) and not
+    on the fork's "mean" one."""
+    strict, mdp = _mdp(hum, lib, 3), _mdp(hum, lib, 3, termination="mean")
     g = lib.starts[1] + 6
     arm = hum.qpos_adr[list(hum.skeleton.joints).index("UpperArm_R")]
     for m in (mdp, strict):
@@ -143,14 +193,16 @@ def test_termination_at_the_body_distance(hum, lib):
 
 def test_task_env_tracks_the_reference_through_the_keyframes(hum, lib):
     """Zero actions on the reference base (PD on the reference) pass every keyframe: high reward,
-    no termination, the keyframes flagged at their frames, truncation at the last one, and the goal
-    is the Eq. 12 differences to the next two keyframes plus the encoded frames left."""
-    mdp = _mdp(hum, lib, 2)
+    no termination (the fork's mean test: PD tracking alone drifts a hand past 0.5 m within the
+    window), the keyframes flagged at their frames, truncation at the last one, and the goal is the
+    Eq. 12 differences to the interval's start and goal keyframes plus the encoded frames left
+    (Eq. 13)."""
+    mdp = _mdp(hum, lib, 2, termination="mean")
     task = mdp.task
     obs, goal = mdp.reset(clips=[0, 5], frames=[0, 40], keyframes=[0, 8, 17])
     assert goal.shape == (2, task.goal_dim) == (2, 2 * 21 * 9) and obs.shape == (2, mdp.obs_dim)
     keys = task.keyframe_bodies()
-    expect = keyframe_goal(mdp.env.bodies, keys.take((slice(None), slice(1, 3))))
+    expect = keyframe_goal(mdp.env.bodies, keys.take((slice(None), slice(0, 2))))
     assert np.allclose(goal - expect, time_encoding(np.array([8, 8]), task.goal_dim, task.window - 4))
     assert task.markers().shape == (2, 21, 3) and np.allclose(task.markers(), keys.pos[:, 1])
     zero = np.zeros((2, mdp.action_dim))
@@ -160,23 +212,43 @@ def test_task_env_tracks_the_reference_through_the_keyframes(hum, lib):
         assert (r["r_task"] > 0.6).all() and (r["r_task"] <= 1.0 + 1e-9).all() and not term.any()
         assert info["at_keyframe"].all() == (step in (8, 17)) and trunc.all() == (step == 17)
         assert (task.target == (1 if step < 8 else 2)).all()
-        if step == 8:  # the goal now shows keyframe 2 twice (the last stretch), 9 frames ahead
-            k2 = keys.take((slice(None), slice(2, 3)))
-            pair = Bodies(*(np.concatenate([a, a], 1) for a in (k2.pos, k2.vel, k2.angvel)),
-                          quat=np.concatenate([k2.quat, k2.quat], 1))
+        if step == 8:  # the next interval: keyframes 1 (its start) and 2 (its goal), 9 frames ahead
             enc = time_encoding(np.array([9, 9]), task.goal_dim, task.window - 4)
-            assert np.allclose(goal, keyframe_goal(mdp.env.bodies, pair) + enc)
+            assert np.allclose(goal, keyframe_goal(mdp.env.bodies, keys.take((slice(None), slice(1, 3)))) + enc)
     assert info["keyframe_index"].tolist() == [2, 2]
-    # the fork's pair (last keyframe passed, next one), concatenated encoding, current-pose base
-    prev = _mdp(hum, lib, 2, base="current", goal_keyframes="previous", time_encoding="concat", time_encoding_dim=6)
-    _, goal = prev.reset(clips=[0, 5], frames=[0, 40], keyframes=[0, 8, 17])
-    assert goal.shape == (2, 2 * 21 * 9 + 6) and prev.task.goal_dim == goal.shape[1]
-    pair = prev.task.keyframe_bodies().take((slice(None), slice(0, 2)))
-    assert np.allclose(goal[:, :-6], keyframe_goal(prev.env.bodies, pair))
+    # the other pair (the goal keyframe and the one after it), concatenated encoding, current-pose base
+    nxt = _mdp(hum, lib, 2, base="current", goal_keyframes="next", time_encoding="concat", time_encoding_dim=6)
+    _, goal = nxt.reset(clips=[0, 5], frames=[0, 40], keyframes=[0, 8, 17])
+    assert goal.shape == (2, 2 * 21 * 9 + 6) and nxt.task.goal_dim == goal.shape[1]
+    pair = nxt.task.keyframe_bodies().take((slice(None), slice(1, 3)))
+    assert np.allclose(goal[:, :-6], keyframe_goal(nxt.env.bodies, pair))
     assert np.allclose(goal[:, -6:], time_encoding(np.array([8, 8]), 6, 14))
     for _ in range(3):
-        _, goal, r, term, _, _ = prev.step(np.zeros((2, prev.action_dim)))
+        _, goal, r, term, _, _ = nxt.step(np.zeros((2, nxt.action_dim)))
         assert np.isfinite(goal).all() and np.isfinite(r["r_task"]).all()
+
+
+def test_the_goal_is_the_intervals_start_and_goal_keyframes_on_a_hand_pose(hum, lib):
+    """Eq. 12-13: the goal reads the current interval's start keyframe and its goal keyframe. Reset
+    on the start keyframe, its part is zero position and the identity rotation; with the root moved
+    0.3 m along world x, every body's difference to it is -0.3 m along x turned into the heading
+    frame; the goal keyframe's part is Eq. 12 to keyframe 1 alone."""
+    mdp = _mdp(hum, lib, 1, time_encoding="none")
+    task = mdp.task
+    mdp.reset(clips=[2], frames=[4], keyframes=[0, 9, 17])
+    J, g = len(hum.skeleton.joints), lib.starts[2] + 4
+    _place(mdp, [0], [g])  # exactly the start keyframe (a reset's start state is lifted clear of the floor)
+    task._refresh_goal(np.arange(1))
+    parts = task.goal().reshape(2, J, 9)
+    assert np.allclose(parts[0, :, :3], 0.0, atol=1e-9) and np.allclose(parts[0, :, 3:], [1, 0, 0, 0, 1, 0], atol=1e-9)
+    _place(mdp, [0], [g], shift=(0.3, 0.0, 0.0))
+    task._refresh_goal(np.arange(1))
+    parts = task.goal().reshape(2, J, 9)
+    r = mdp.env.bodies.rot[0, 0]
+    yaw = math.atan2(r[1, 0], r[0, 0])  # the root's heading, from its rotation matrix by hand
+    assert np.allclose(parts[0, :, :3], [-0.3 * math.cos(yaw), 0.3 * math.sin(yaw), 0.0], atol=1e-9)
+    one = keyframe_goal(mdp.env.bodies, task.keyframe_bodies().take((slice(None), slice(1, 2))))
+    assert np.allclose(parts[1].ravel(), one[0])
 
 
 def test_random_windows_fit_their_clips_and_bad_inputs_are_named(hum, lib):
@@ -187,6 +259,20 @@ def test_random_windows_fit_their_clips_and_bad_inputs_are_named(hum, lib):
     assert (t.keyframes[:, 0] == t.start).all() and (t.keyframes[:, -1] == t.start + 119).all()
     assert (t.keyframes[:, -1] <= lib.lengths[t.clip] - 1).all() and (np.diff(t.keyframes, axis=1) >= 15).all()
     assert len(np.unique(t.keyframes[:, 1] - t.start)) > 10  # the keyframes differ between windows
+    # the interior ones are zero-velocity poses: local minima of their clip's pose speed, or
+    # the slowest frame of a stretch the spacing allows that has none
+    speed, still = pose_speed(lib.body_vel), 0
+    for i in range(64):
+        s = speed[lib.frame_index(t.clip[i], t.start[i] + np.arange(120))]
+        k = t.keyframes[i] - t.start[i]
+        for j in (1, 2):
+            allowed = np.arange(k[j - 1] + 15, 119 - (3 - j) * 15 + 1)
+            minima = [u for u in allowed if s[u] <= s[u - 1] and s[u] <= s[u + 1]]
+            assert k[j] in minima if minima else k[j] == allowed[np.argmin(s[allowed])]
+            still += bool(minima)
+    assert still > 100  # most stretches hold a still frame
+    with pytest.raises(UserError, match="keyframe_selection"):
+        InbetweenTaskConfig(keyframe_selection="random")
     with pytest.raises(UserError, match="run past"):
         mdp.reset([0], clips=[0], frames=[lib.lengths[0] - 50])
     with pytest.raises(UserError, match="keyframes must be"):
@@ -235,7 +321,7 @@ def test_the_episode_summary_on_hand_values():
 
 
 def test_evaluate_inbetween_on_pd_tracking(hum, lib):
-    mdp = _mdp(hum, lib, 2, seed=1)
+    mdp = _mdp(hum, lib, 2, seed=1, termination="mean")  # PD tracking drifts a hand past 0.5 m, not the mean
     res = evaluate_inbetween(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), 3)
     assert res["episodes"] == 3 and res["keyframes_per_window"] == 4 and len(res["per_episode"]["success"]) == 3
     assert res["success_rate"] == 1.0 and res["seconds_mean"] == pytest.approx(17 / 30)
@@ -254,7 +340,8 @@ def test_evaluation_plays_failed_windows_to_their_end(hum, lib):
     """Table 2's errors are over whole windows: with a failure test that fires within a few frames
     (1 cm mean body distance), the same windows give the same errors as when nothing fails, every
     episode is a failure, and its seconds stop where the test first fired."""
-    _, _, mdp = played_to_the_end(evaluate_inbetween, lambda **kw: _mdp(hum, lib, 2, seed=1, **kw), 0.01,
+    _, _, mdp = played_to_the_end(evaluate_inbetween,
+                                  lambda **kw: _mdp(hum, lib, 2, seed=1, termination="mean", **kw), 0.01,
                                   [pre + m for m in ("mpjpe_mm", "g_mpjpe_mm", "vel_err_mm", "acc_err_mm")
                                    for pre in ("", "keyframe_")], 17 / 30)
     mdp.reset()

@@ -49,7 +49,9 @@ def test_goal_is_the_target_in_the_heading_frame():
 
 
 def test_reward_against_hand_values():
-    cfg = NavigationTaskConfig()
+    """Eq. 16 on hand states, in the fork's form (the position term decays inside the radius too);
+    the paper's maximum on arrival is the next test."""
+    cfg = NavigationTaskConfig(full_reward_on_arrival=False)
     e = math.exp
     c45 = math.cos(math.pi / 4)
     cases = [  # (root xy, yaw deg, planar velocity, target, r_vel)
@@ -78,6 +80,30 @@ def test_reward_against_hand_values():
     assert r["r_task"][0] == pytest.approx(0.7 * e(-0.045) + 0.3)
     assert r["r_task"][2] == pytest.approx(0.7 * e(-12.5) + 0.3 * e(-1))
     assert r["r_task"][3] > r["r_task"][4] > r["r_task"][6] > r["r_task"][5]  # toward > slower > still-ish > away
+    # The paper's form (the default) differs only within the radius, where it is the maximum
+    paper = navigation_reward(root, vel, quat, target, NavigationTaskConfig())
+    inside = d < 0.5
+    assert inside.tolist() == [True, True] + [False] * 9
+    np.testing.assert_array_equal(paper["r_task"][inside], 1.0)
+    np.testing.assert_array_equal(paper["r_task"][~inside], r["r_task"][~inside])
+
+
+def test_the_reward_is_its_maximum_anywhere_within_the_arrival_radius():
+    """C.3 / Eq. 16: arrival earns the maximum, w_pos + w_vel = 1, wherever inside the 0.5 m radius
+    the root stands and however it moves (walking on, away, backwards); just outside, less."""
+    cfg = NavigationTaskConfig()
+    rng = np.random.default_rng(3)
+    n = 200
+    ang, rad = rng.uniform(0, 2 * np.pi, n), np.r_[0.0, 0.499999, rng.uniform(0, 0.5, n - 2)]
+    target = np.array([[2.0, -1.0]])
+    root = np.c_[target + rad[:, None] * np.c_[np.cos(ang), np.sin(ang)], np.full(n, 0.9)]
+    quat = np.stack([yaw_quat(a) for a in rng.uniform(-180, 180, n)])
+    vel = np.c_[rng.uniform(-2, 2, (n, 2)), np.zeros(n)]
+    r = navigation_reward(root, vel, quat, np.repeat(target, n, 0), cfg)
+    np.testing.assert_array_equal(r["r_task"], 1.0)
+    np.testing.assert_array_equal(r["r_pos"], 1.0)
+    out = navigation_reward(root[:1] + [0.5, 0, 0], np.zeros((1, 3)), quat[:1], target, cfg)
+    assert out["r_task"][0] == pytest.approx(0.7 * math.exp(-0.125) + 0.3 * math.exp(-1))
 
 
 def test_head_fall_skips_the_first_step():
@@ -153,7 +179,7 @@ def test_targets_change_every_retarget_period_and_episodes_truncate(hum, lib):
     np.testing.assert_allclose(env.qpos, reference_state(lib, np.array([0, 1]), np.array([3, 7]))[0])
     root = env.qpos[:, :2].copy()
     d0 = np.hypot(*(task.target - root).T)
-    assert ((d0 >= 5) & (d0 <= 10)).all() and (task.target_index == 0).all()
+    assert (d0 <= 10).all() and (task.target_index == 0).all()
     # Eq. 15 by hand: the displacement turned by minus the root's heading
     f = _forward(env.qpos[:, 3:7])
     disp = task.target - root
@@ -167,15 +193,42 @@ def test_targets_change_every_retarget_period_and_episodes_truncate(hum, lib):
         assert info["target_ends"].all() == (t % 15 == 0) and trunc.all() == (t == 30) and trunc.any() == (t == 30)
         if t < 15:
             np.testing.assert_array_equal(task.target, first)
-        if t == 15:  # a new target, 5-10 m from where the root is now, and the goal already shows it
+        if t == 15:  # a new target within 10 m of where the root is now, and the goal already shows it
             assert (task.target_index == 1).all() and not np.isclose(task.target, first).any()
             d = np.hypot(*(task.target - env.qpos[:, :2]).T)
-            assert ((d >= 5) & (d <= 10)).all()
+            assert (d <= 10).all()
             np.testing.assert_allclose(goal, heading_frame_target(env.qpos[:, :3], env.qpos[:, 3:7], task.target))
             np.testing.assert_allclose(info["distance"], np.hypot(*(first - env.qpos[:, :2]).T))  # the old one's
     assert (task.target_index == 1).all()  # no third target at the truncation step
     mdp.reset([1])
     assert task.target_index.tolist() == [1, 0] and task.steps.tolist() == [30, 0]
+
+
+def test_the_papers_targets_within_10_m_renewed_every_4_s(hum, lib):
+    """C.3 with the defaults: a target within 10 m of the root, a new one exactly every 4 s (120
+    control steps) drawn around where the root is then, 8 s episodes; the same seed draws the same
+    targets. Over many draws the distance is uniform on [0, 10] m."""
+    d = np.hypot(*(sample_targets(np.zeros((40000, 3)), np.random.default_rng(0), 0.0, 10.0)).T)
+    assert d.max() <= 10.0 and d.mean() == pytest.approx(5.0, abs=0.05)
+    assert (d < 0.5).mean() == pytest.approx(0.05, abs=0.005)  # uniform in distance: 5 % start within the radius
+    runs = []
+    for _ in range(2):
+        mdp = _mdp(hum, lib, 2, seed=7, early_termination=False)
+        task, env = mdp.task, mdp.env
+        assert (task.retarget_steps, task.max_steps) == (120, 240)
+        mdp.reset(clips=[0, 1], frames=[3, 7])
+        targets, changed = [task.target.copy()], []
+        assert (np.hypot(*(task.target - env.qpos[:, :2]).T) <= 10.0).all()
+        for t in range(1, 241):
+            _, _, _, _, trunc, info = mdp.step(_hold(mdp))
+            if not np.array_equal(task.target, targets[-1]):
+                changed.append(t)
+                targets.append(task.target.copy())
+                assert (np.hypot(*(task.target - env.qpos[:, :2]).T) <= 10.0).all()
+            assert trunc.all() == (t == 240)
+        assert changed == [120]  # renewed at 4 s; the episode ends at 8 s, before a third
+        runs.append(np.stack(targets))
+    np.testing.assert_array_equal(runs[0], runs[1])
 
 
 def test_standing_humanoid_rewards_and_a_dropped_one_terminates(hum, lib):
@@ -200,9 +253,9 @@ def test_standing_humanoid_rewards_and_a_dropped_one_terminates(hum, lib):
     assert np.abs(np.hypot(*v.T)[:2]).max() < 0.1 and abs(d[1] - 0.3) < 0.02  # standing still
     np.testing.assert_allclose(r["r_vel"][0], math.exp(-(1 - toward[0]) ** 2), rtol=1e-4)
     assert r["r_vel"][1] == 1.0
-    np.testing.assert_allclose(r["r_task"][:2], 0.7 * np.exp(-0.5 * d[:2] ** 2) + 0.3 * r["r_vel"][:2], rtol=1e-12)
+    np.testing.assert_allclose(r["r_task"][0], 0.7 * np.exp(-0.5 * d[0] ** 2) + 0.3 * r["r_vel"][0], rtol=1e-12)
     assert r["r_task"][0] == pytest.approx(0.7 * math.exp(-18) + 0.3 * math.exp(-1), abs=0.02)
-    assert r["r_task"][1] == pytest.approx(0.7 * math.exp(-0.5 * 0.09) + 0.3, abs=0.01)
+    assert r["r_task"][1] == 1.0 and r["r_pos"][1] == 1.0  # at the goal: Eq. 16's maximum (C.3)
     assert info["reached"].tolist() == [False, True, False] and info["time_to_reach"][1] == pytest.approx(1 / 30)
     _, _, r, term, trunc, info = mdp.step(_hold(mdp))
     assert term.tolist() == [False, False, True] and info["fell"].tolist() == [False, False, True]
@@ -230,8 +283,8 @@ def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
         mdp = _mdp(hum, lib, n, **cfg)
         return evaluate_navigation(mdp, lambda obs, goal: np.zeros((len(obs), mdp.action_dim)), episodes, idle_speed)
 
-    # Targets 5-10 m away are never reached by a character holding its pose.
-    far = run(3, early_termination=False, **SHORT)
+    # Targets 5-10 m away (the fork's draw) are never reached by a character holding its pose.
+    far = run(3, min_distance=5.0, early_termination=False, **SHORT)
     assert far["episodes"] == 3 and far["targets"] == 6 and far["reached_share"] == 0.0
     assert math.isnan(far["time_to_reach_mean_s"]) and len(far["goal_speeds"]) == 0 and far["falls_per_episode"] == 0
     # Targets within the radius are reached on the first step (a walking start state carries the
@@ -261,7 +314,7 @@ def test_evaluation_counts_targets_falls_and_goal_speeds(hum, lib):
     assert sum(len(b) for b in slow) <= (speeds < IDLE_SPEED).sum() < sum(lengths)
     assert all(drift(b) <= IDLE_SPEED + 0.05 for b in slow)
     # A head "below" 3 m is a fall on every second step: one fall per episode, its target missed.
-    fall = run(3, fall_height=3.0, **SHORT)
+    fall = run(3, fall_height=3.0, min_distance=5.0, **SHORT)
     assert fall["falls_per_episode"] == 1.0 and fall["targets"] == 3 and fall["reached_share"] == 0.0
     # Per target: the distance when it appeared (drawn 5-10 m around the root) and the closest approach.
     st, cl = far["start_distances"], far["closest_distances"]

@@ -142,3 +142,4 @@ def test_the_recipe_loads_and_trains_in_navigation_s_world():
     steer, nav = (load_config(TaskTrainConfig, root / f"task_{n}.yaml") for n in ("steering", "navigation"))
     assert steer.task == "steering" and steer.tasks.steering == SteeringTaskConfig()
     assert steer.env == nav.env and steer.ppo == nav.ppo and steer.net == nav.net
+    assert steer.continuous_lr == nav.continuous_lr

@@ -27,7 +27,8 @@ def train_cmd(
     task: Optional[str] = typer.Option(None, "--task", help=f"The task: {TASK_NAMES} (default: the recipe's)."),
     prior: Path = input_option("--prior", help="A control-prior folder (from `control distill`), kept frozen."),
     codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="Choose codes in the first M codebooks "
-                                             "(residual priors; default: the recipe's, else all).",
+                                             "(residual priors; default: the recipe's, else the task's paper "
+                                             "default: inbetween 1, hmd 2, navigation 1).",
                                              within=f"{TASK}.codebooks"),
     out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
     recipe: Optional[Path] = recipe_option("recipes/control/task_*.yaml"),

@@ -5,11 +5,13 @@ The prior's decoder ``pi_low(s, z_bar)`` is frozen; a new policy ``pi_high(s, g)
 proprioception ``s`` (Eq. 7) and the task goal ``g`` and chooses the latent:
 
 * ``discrete``, ``hybrid-vq``: one categorical over the codebook;
-* ``discrete+``, ``hybrid``: one categorical per active codebook (the first ``M``), independent
-  given the input; ``z_bar`` is the sum of the chosen codes, plus ``z_p(s)`` for the hybrid
-  (section 4.1: the codes are codes of the margin to the prior);
-* ``continuous``: a Gaussian offset ``u`` with a fixed exploration std (a recipe value; the
-  paper's Fig. 4 right shows the result depends on it), ``z = mu_p(s) + u`` (Eq. 2's prior mean).
+* ``discrete+``, ``hybrid``: one categorical per active codebook (the first ``M``: the task's
+  paper default, Tables 6-8, unless the run gives ``codebooks``), independent given the input;
+  ``z_bar`` is the sum of the chosen codes, plus ``z_p(s)`` for the hybrid (section 4.1: the codes
+  are codes of the margin to the prior);
+* ``continuous``: a Gaussian offset ``u`` with a fixed exploration std (``net.std``, 0.04 as the
+  authors' code fixes it; the paper's Fig. 4 right shows the result depends on it),
+  ``z = mu_p(s) + u`` (Eq. 2's prior mean).
 
 The environment sees the decoder's action: :class:`LatentActionMap` is the action map of
 ``motok.control.mdp.task_env.TaskEnv`` that turns the high-level action into PD targets on the
@@ -54,7 +56,10 @@ class HighLevelNetConfig:
     policy: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     value: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of the critic's MLP
     activation: str = "elu"  # relu | elu | tanh | silu
-    std: In[float, "> 0"] = 0.2  # continuous prior: exploration std of the offset u (fixed, as in the paper)
+    # Continuous prior: the fixed exploration std of the offset u. 0.04, the value the authors' released
+    # continuous task recipe fixes (log std -3.2) after the sensitivity Fig. 4 (right) shows; 0.2 and
+    # 0.1 are what motok measured before (docs/history.md): --set net.std=0.2
+    std: In[float, "> 0"] = 0.04
 
 
 class LatentActionMap:
@@ -111,6 +116,16 @@ def build_high_level(net: HighLevelNetConfig, model: LatentPrior, obs_dim: int, 
     return ActorCritic(RunningNorm(d), pol, ValueNet(d, tuple(net.value), net.activation))
 
 
+def task_codebooks(model: LatentPrior, task: str, codebooks: int | None) -> int | None:
+    """The ``codebooks`` a new run of ``task`` over ``model`` uses: ``codebooks`` when given, else
+    the task's paper default (``TaskSpec.codebooks``, at most the prior's; all where the task has
+    none); None for the continuous prior, which has no codebooks."""
+    if codebooks is not None or model.quantizer is None:
+        return codebooks
+    default = registry.spec(task).codebooks
+    return model.num_codebooks if default is None else min(default, model.num_codebooks)
+
+
 def paper_ppo() -> PPOConfig:
     """Tables 6-8: clip 0.1, lr 5e-5, horizon 16, gamma 0.99, lambda 0.95."""
     return PPOConfig(horizon=16, epochs=6, minibatch_size=1024, gamma=0.99, lam=0.95, clip=0.1, lr=5e-5,
@@ -122,8 +137,11 @@ class TaskTrainConfig:
     seed: In[int, ">= 0"] = 0  # networks, task draws and minibatches
     iterations: In[int, ">= 1"] = 2000  # PPO iterations (each: ppo.horizon steps of every environment, then the update)
     task: str = "navigation"  # one of motok.control.tasks.registry.names()
-    codebooks: In[int | None, ">= 1"] = None  # active codebooks M of a residual prior (None: all)
-    save_every: In[int, ">= 1"] = 50
+    # Active codebooks M of a residual prior. None: the task's paper default (its TaskSpec.codebooks,
+    # Tables 6-8: in-betweening 1, head tracking 2, navigation 1; at most the prior's), saved resolved
+    # when a run starts. Runs saved before that resolution held None for all of them, and still do.
+    codebooks: In[int | None, ">= 1"] = None
+    save_every: In[int, ">= 1"] = 50  # iterations between checkpoints
     eval_every: In[int, ">= 0"] = 0  # iterations between task evaluations logged as eval_* (0: never)
     eval_episodes: In[int, ">= 1"] = 64
     deterministic_eval: bool = True  # evaluate with the most likely action (argmax codes, the mean offset)
@@ -133,9 +151,15 @@ class TaskTrainConfig:
     tasks: registry.TaskConfigs = field(default_factory=registry.TaskConfigs)  # every task's settings: tasks.NAME.FIELD
     ppo: PPOConfig = field(default_factory=paper_ppo)  # the update (Tables 6-8's values by default)
     net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)  # the high-level policy and critic
+    # The continuous prior's learning rate, in place of ppo.lr (None: ppo.lr). Its fixed-std Gaussian
+    # moves far more per step than the categorical heads at the same lr (docs/history.md): the 2-core
+    # recipes raise ppo.lr for the categorical policies and keep this at Tables 6-8's 5e-5.
+    continuous_lr: In[float | None, "> 0"] = None
 
+    # What a config saved before a key existed did (motok.config.from_dict): ppo.lr for every prior.
+    KEYS_ADDED = {"continuous_lr": None}
     # Taken from the prior when a run starts and saved resolved: a resume's recipe may leave them out.
-    RESUME_DERIVED = ("env.control_hz", "env.target_filter")
+    RESUME_DERIVED = ("env.control_hz", "env.target_filter", "codebooks")
 
     def check(self) -> None:
         registry.check(self.task)

@@ -16,6 +16,7 @@ high-level action space.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -24,11 +25,12 @@ from motok.checkpoint import read_meta
 from motok.config import checked
 from motok.control import runs
 from motok.control.highlevel.evaluate import evaluate_policy
-from motok.control.highlevel.policy import (KIND, TaskTrainConfig, action_space, build_high_level, task_mdp)
+from motok.control.highlevel.policy import (KIND, TaskTrainConfig, action_space, build_high_level, task_codebooks,
+                                            task_mdp)
 from motok.control.priors.model import KIND as PRIOR_KIND
 from motok.control.priors.model import DistillConfig, LatentPrior, load_prior
 from motok.control.rl import runner
-from motok.control.rl.ppo import PPO
+from motok.control.rl.ppo import PPO, PPOConfig
 from motok.control.rl.rollout import Collector
 from motok.control.tasks import registry
 from motok.distributed import Dist
@@ -53,7 +55,7 @@ class TaskTrainer:
         device = m.env.torch_device if m.env.on_device else None  # policy, frozen prior and buffers there
         model.to(device)
         self.ac = build_high_level(cfg.net, model, m.obs_dim, m.goal_dim, cfg.codebooks).to(device)
-        self.ppo = PPO(self.ac, cfg.ppo, cfg.iterations)
+        self.ppo = PPO(self.ac, ppo_config(cfg, model), cfg.iterations)
         self.collector = Collector(m, self.ac, cfg.ppo.horizon)
         self.samples_per_iteration = cfg.ppo.horizon * m.num_envs * d.world
         self.iteration, self.samples, self.wall = 0, 0, 0.0
@@ -95,11 +97,30 @@ class TaskTrainer:
         return runner.finish_step(self, stats, t0, t1)
 
 
+def ppo_config(cfg: TaskTrainConfig, model: LatentPrior) -> PPOConfig:
+    """``cfg.ppo``, with ``cfg.continuous_lr`` as the learning rate over the continuous prior."""
+    if model.quantizer is None and cfg.continuous_lr is not None:
+        return replace(cfg.ppo, lr=cfg.continuous_lr)
+    return cfg.ppo
+
+
+def resolve_codebooks(cfg: TaskTrainConfig, run, model: LatentPrior, resume: bool) -> None:
+    """Put the active codebooks in ``cfg`` before the run saves it: a resumed run's own (its saved
+    config's; None there, from before defaults were resolved, meant all), else the task's paper
+    default when the recipe leaves them out (:func:`task_codebooks`)."""
+    if resume and (Path(run) / "bundle.json").exists():
+        if cfg.codebooks is None:
+            cfg.codebooks = read_meta(run, KIND)["config"].get("codebooks")
+        return
+    cfg.codebooks = task_codebooks(model, cfg.task, cfg.codebooks)
+
+
 def train(cfg: TaskTrainConfig, run, prior_run, lib: ReferenceLibrary, *, resume: bool = False,
           until: int | None = None, data=None, command: str | None = None) -> dict:
     """Train (or resume) a high-level policy for ``cfg.task`` over the prior in ``prior_run``."""
     pcfg, hum, model, _ = load_prior(prior_run)
     cfg.check()
+    resolve_codebooks(cfg, run, model, resume)
     if cfg.env.control_hz is None:
         cfg.env.control_hz = pcfg.env.control_hz
     cfg.env.same_world(pcfg.env, f"the prior {prior_run}")

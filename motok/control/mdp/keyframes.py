@@ -7,6 +7,12 @@ pass through the others at their frames, the last being the window's last frame.
   between them, consecutive keyframes at least ``min_gap`` frames apart (the fork's
   ``full_random_long`` style, its default for training and the one it forces for testing;
   ``min_gap`` = 15 frames there, 0.5 s at 30 Hz);
+* :func:`still_frames` / :func:`sample_still_keyframes`: the paper's keyframes are zero-velocity
+  poses (C.1). Captured motion is never exactly still, so the interior keyframes are drawn among
+  the frames where the pose comes to rest: local minima of the pose speed (:func:`pose_speed`, the
+  bodies' speed relative to the root, so that walking on is no motion of the pose), in order, each at least ``min_gap`` frames after the one before
+  and leaving room for the rest; a stretch with no such frame gives its slowest frame. The first
+  keyframe is the start state and the last the window's last frame, as in the fork;
 * :func:`next_keyframe`: which keyframe is the next to reach, and :func:`time_encoding`, the
   sinusoidal encoding of the frames left until it (Eq. 13);
 * :func:`keyframe_goal`, Eq. 12: for each goal keyframe and every body, the position and rotation
@@ -76,6 +82,52 @@ def sample_keyframes(rng, n: int, count: int, window: int, min_gap: int):
     x, ends = xp(draws), np.array([[0, window - 1]], dtype=np.int64).repeat(n, 0)
     ends = like(draws, ends)
     return x.concatenate([ends[:, :1], draws + like(draws, min_gap * np.arange(1, count - 1)), ends[:, 1:]], 1)
+
+
+def pose_speed(body_vel):
+    """``(...,)`` the pose's speed (m/s) from world body velocities ``(..., J, 3)``, the root first:
+    the mean over the other bodies of their speed relative to the root. On the walks of set 2's
+    walk_normal slice its local minima fall at 0.32 m/s against 0.47 at any frame, where those of
+    the world speed, dominated by the root's travel, fall at 1.12 against 1.19."""
+    x = xp(body_vel)
+    rel = body_vel[..., 1:, :] - body_vel[..., :1, :]
+    return x.sqrt((rel ** 2).sum(-1)).mean(-1)
+
+
+def still_frames(speed):
+    """``(n, T)`` bool from pose speeds ``(n, T)``: the interior frames ``0 < t < T - 1`` at a local
+    minimum, ``speed[t] <= speed[t - 1]`` and ``speed[t] <= speed[t + 1]``: where the pose comes to
+    rest, the zero-velocity poses captured motion has."""
+    x = xp(speed)
+    inner = (speed[:, 1:-1] <= speed[:, :-2]) & (speed[:, 1:-1] <= speed[:, 2:])
+    edge = x.zeros_like(speed[:, :1], dtype=bool) if x is np else x.zeros_like(speed[:, :1], dtype=x.bool)
+    return x.concatenate([edge, inner, edge], 1)
+
+
+def sample_still_keyframes(rng, speed, count: int, min_gap: int):
+    """``(n, count)`` keyframe offsets within windows of ``T`` frames whose pose speeds are
+    ``speed`` ``(n, T)`` (:func:`pose_speed`): ``0``, ``count - 2`` zero-velocity frames, ``T - 1``
+    (module docstring).
+    Interior keyframe ``j`` is uniform over the :func:`still_frames` in ``[k_(j-1) + min_gap,
+    T - 1 - (count - 1 - j) min_gap]``, or the slowest frame there when none is. ``rng``: numpy's
+    generator (host arrays) or a ``torch.Generator`` (tensors on its device)."""
+    n, T = speed.shape
+    check_keyframe_count(count, T, min_gap)
+    x = xp(speed)
+    still, t = still_frames(speed), like(speed, np.arange(T, dtype=np.int64))[None]
+    prev, keys = like(speed, np.zeros(n, dtype=np.int64)), [like(speed, np.zeros(n, dtype=np.int64))]
+    for j in range(1, count - 1):
+        inside = (t >= (prev + min_gap)[:, None]) & (t <= T - 1 - (count - 1 - j) * min_gap)
+        if x is np:
+            u = rng.random((n, T))
+        else:
+            u = x.rand((n, T), generator=rng, device=rng.device, dtype=speed.dtype)
+        drawn = x.where(still & inside, u, -1.0).argmax(1)
+        slowest = x.where(inside, speed, np.inf).argmin(1)
+        prev = x.where((still & inside).any(1), drawn, slowest)
+        keys.append(prev)
+    keys.append(like(speed, np.full(n, T - 1, dtype=np.int64)))
+    return x.stack(keys, 1)
 
 
 def check_keyframes(keyframes: np.ndarray, window: int, where: str = "inbetween task") -> None:

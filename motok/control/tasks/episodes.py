@@ -12,8 +12,8 @@ trajectory: early termination is off while evaluating (:func:`whole_episodes`), 
 authors' fork's test mode. With it on, a failed episode would count only the frames before it
 failed, where the errors are small by construction, and the keyframe columns would leave out the
 episodes that failed before their first target keyframe: the policies that fail more would look
-closer. An episode **succeeds** when the task's failure test (``info["off_track"]``: the mean body
-distance above 0.5 m for in-betweening, the head more than 1 m off for HMD) never fired and the
+closer. An episode **succeeds** when the task's failure test (``info["off_track"]``: a body more
+than 0.5 m from its reference for in-betweening (by default), the head more than 1 m off for HMD) never fired and the
 simulation did not diverge; ``seconds`` is the time until that test first fired (the whole
 episode if never).
 

@@ -143,4 +143,5 @@ def evaluate_hmd(mdp: TaskEnv, act: Act, episodes: int) -> dict:
         {"per_episode": {k: v for k, v in out["per_episode"].items() if not k.startswith("keyframe_")}}
 
 
-SPEC = TaskSpec("hmd", HMDTaskConfig, HMDTask, evaluate_hmd)  # appendix C.2, Table 3
+# appendix C.2, Table 3; Table 7: two active codebooks (the authors' code: num_quants 2)
+SPEC = TaskSpec("hmd", HMDTaskConfig, HMDTask, evaluate_hmd, codebooks=2)

@@ -3,21 +3,25 @@ reference window at their frames.
 
 * reset: a random clip and window start (clips drawn in proportion to their usable length) or given
   ones; the start state is the reference at the window's first frame (``mdp.resets``), which is
-  also the first keyframe. ``num_keyframes`` keyframes in all (``mdp.keyframes.sample_keyframes``:
-  the start, random interior frames at least ``min_keyframe_gap_seconds`` apart, the window's last
-  frame). Training uses 4 per 4 s window (C.1); the paper's Table 2 evaluates with 5 per 4 s, which
-  ``eval_keyframes`` holds and :func:`evaluate_inbetween` switches to;
+  also the first keyframe. ``num_keyframes`` keyframes in all: the start, interior keyframes at
+  least ``min_keyframe_gap_seconds`` apart, the window's last frame. The interior ones are
+  zero-velocity poses (C.1; ``keyframe_selection="still"``, ``mdp.keyframes.sample_still_keyframes``:
+  local minima of the reference's pose speed) or, with ``"uniform"``, any frames (the fork's
+  draw, ``sample_keyframes``). Training uses 4 per 4 s window (C.1); the paper's Table 2 evaluates
+  with 5 per 4 s, which ``eval_keyframes`` holds and :func:`evaluate_inbetween` switches to;
 * goal: Eq. 12 position and rotation differences to two keyframes, plus (added to them, as the
-  fork does) the Eq. 13 sinusoidal encoding of the frames left until the next keyframe.
-  ``goal_keyframes="next"``: the next keyframe to reach and the one after it (the last keyframe
-  twice on the last stretch); ``"previous"``: the last keyframe passed and the next one, which is
-  what the fork's code feeds (``_curr_keyframe_indices`` and ``+ 1``);
+  fork does) the Eq. 13 sinusoidal encoding of the frames left until the goal keyframe.
+  ``goal_keyframes="previous"`` (the default): the current interval's start keyframe (the last
+  one passed) and its goal keyframe (the next to reach), Eq. 12-13 and the fork's
+  (``_curr_keyframe_indices`` and ``+ 1``); ``"next"``: the goal keyframe and the one after it
+  (the last keyframe twice on the last stretch);
 * reward: Eq. 14 against the reference at every frame (``mdp.keyframes.inbetween_reward``), 0 after
   a diverged simulation or an invalid action;
-* terminated: the bodies too far from the reference (``mdp.terminations.tracking_failure``: the
-  fork's ``error_mean``, mean body distance > 0.5 m; the fork leaves the feet out of that mean),
-  a diverged simulation or an invalid action; truncated: the last keyframe's frame is reached.
-  ``info["off_track"]`` is that distance test whether or not it ends the episode
+* terminated: the bodies too far from the reference (``mdp.terminations.tracking_failure``):
+  by default any body more than 0.5 m from its reference, the maximum distance of B.1 and C.1
+  (``termination="mean"``: the mean over bodies, the fork's ``error_mean``, which leaves the feet
+  out of that mean), a diverged simulation or an invalid action; truncated: the last keyframe's
+  frame is reached. ``info["off_track"]`` is that distance test whether or not it ends the episode
   (``early_termination``), for evaluations that play every window to its end.
 
 Book-keeping that differs from the fork: the goal moves on to the next keyframe at the frame a
@@ -33,8 +37,8 @@ import numpy as np
 
 from motok.arrays import copy, is_tensor, like, take_along, xp
 from motok.control.mdp.keyframes import (KEYFRAME_FEATURES, InbetweenRewardConfig, check_keyframe_count,
-                                         check_keyframes, inbetween_errors, inbetween_reward,
-                                         keyframe_goal, next_keyframe, sample_keyframes,
+                                         check_keyframes, inbetween_errors, inbetween_reward, keyframe_goal,
+                                         next_keyframe, pose_speed, sample_keyframes, sample_still_keyframes,
                                          time_encoding)
 from motok.control.mdp.resets import (ClipProbabilities, check_rate, given_starts, host_lengths, reference_bodies,
                                       reference_state, sample_starts)
@@ -49,6 +53,7 @@ from motok.sim.obs import Bodies
 from motok.sim.reference import ReferenceLibrary
 
 GOAL_KEYFRAMES = ("next", "previous")
+KEYFRAME_SELECTIONS = ("still", "uniform")
 TIME_ENCODINGS = ("add", "concat", "none")
 
 
@@ -58,17 +63,28 @@ class InbetweenTaskConfig:
     num_keyframes: In[int, ">= 2"] = 4  # per window, the start and the window's last frame included (C.1, training)
     eval_keyframes: In[int, ">= 2"] = 5  # per window in evaluation (Table 2)
     min_keyframe_gap_seconds: In[float, ">= 0"] = 0.5  # the fork's 15 frames at 30 Hz
-    goal_keyframes: str = "next"  # "next": next + the one after; "previous": last passed + next (the fork's)
+    # Interior keyframes: "still", zero-velocity poses (C.1: local minima of the pose's speed);
+    # "uniform", any frames (the fork's full_random_long draw)
+    keyframe_selection: str = "still"
+    # "previous": the interval's start and goal keyframes (Eq. 12-13; the fork's too); "next": the goal
+    # keyframe and the one after it
+    goal_keyframes: str = "previous"
     time_encoding: str = "add"  # "add" to the keyframe goal (the fork's), "concat" time_encoding_dim numbers, "none"
     time_encoding_dim: In[int, ">= 1"] = 16  # only with "concat"
-    termination: str = "mean"  # body distance test: "mean" over bodies or "any" body
+    termination: str = "any"  # "any" body (the maximum distance, B.1 and C.1) or the "mean" over bodies (the fork's)
     termination_distance: In[float, "> 0"] = 0.5  # m, from the reference
     early_termination: bool = True
     reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)  # Eq. 14's weights and exponents
 
+    # What a config saved before a key existed did (motok.config.from_dict): uniform keyframes.
+    KEYS_ADDED = {"keyframe_selection": "uniform"}
+
     def __post_init__(self):
         if not self.window_seconds > 0:
             raise UserError(f"inbetween task: window_seconds must be > 0, got {self.window_seconds}")
+        if self.keyframe_selection not in KEYFRAME_SELECTIONS:
+            raise UserError(f"inbetween task: keyframe_selection must be 'still' or 'uniform', "
+                            f"not {self.keyframe_selection!r}")
         if self.goal_keyframes not in GOAL_KEYFRAMES:
             raise UserError(f"inbetween task: goal_keyframes must be 'next' or 'previous', not {self.goal_keyframes!r}")
         if self.time_encoding not in TIME_ENCODINGS:
@@ -107,6 +123,7 @@ class InbetweenTask(Task):
         self.set_keyframe_count(cfg.num_keyframes)
         self._goal = like(lib.qpos, np.zeros((N, self.goal_dim)))
         self._host_lengths = host_lengths(lib)  # to check given starts on the host
+        self._speed = pose_speed(lib.body_vel)  # (F,) the pose's speed per library frame: the still keyframes
 
     def set_keyframe_count(self, count: int) -> None:
         """Keyframes per window from now on (e.g. ``cfg.eval_keyframes``); every environment must be
@@ -125,7 +142,10 @@ class InbetweenTask(Task):
             c, f = sample_starts(L, n, self.rng, T - 1, self.clip_p)
         else:
             c, f = given_starts(L, clips, frames, n)
-        if keyframes is None:
+        if keyframes is None and self.cfg.keyframe_selection == "still":
+            speed = self._speed[L.frame_index(c[:, None], f[:, None] + like(f, np.arange(T, dtype=np.int64)))]
+            off = sample_still_keyframes(self.rng, speed, K, self.min_gap)
+        elif keyframes is None:
             off = sample_keyframes(self.rng, n, K, T, self.min_gap)
         else:
             off = np.asarray(keyframes, dtype=np.int64)
@@ -233,4 +253,5 @@ def evaluate_inbetween(mdp: TaskEnv, act: Act, episodes: int) -> dict:
     return {"keyframes_per_window": int(task.cfg.eval_keyframes), **out}
 
 
-SPEC = TaskSpec("inbetween", InbetweenTaskConfig, InbetweenTask, evaluate_inbetween)  # appendix C.1, Table 2
+# appendix C.1, Table 2; Table 6: one active codebook (the authors' code: num_quants 1)
+SPEC = TaskSpec("inbetween", InbetweenTaskConfig, InbetweenTask, evaluate_inbetween, codebooks=1)

@@ -2,9 +2,9 @@
 
 * reset: reference state initialisation (``mdp.resets``) at a random clip and frame (clips in
   proportion to their length) or at given ones; no reference motion is used after that. A first
-  target is drawn around the new root (``mdp.navigation.sample_targets``: 5-10 m, any direction);
+  target is drawn around the new root (``mdp.navigation.sample_targets``: within 10 m, any direction);
 * goal: Eq. 15, the target in the root's heading frame, 2 numbers (``heading_frame_target``);
-* reward: Eq. 16, ``0.7 exp(-0.5 d^2) + 0.3 exp(-max(0, 1 - v)^2)``, the velocity term 1 within
+* reward: Eq. 16, ``0.7 exp(-0.5 d^2) + 0.3 exp(-max(0, 1 - v)^2)``, its maximum 1 anywhere within
   0.5 m (``navigation_reward``), 0 after a diverged simulation or an invalid action;
 * a new target every ``retarget_seconds`` (4 s); the step's reward and ``info`` are those of the
   target the action was chosen for, the goal returned after it already shows the new one;
@@ -47,16 +47,23 @@ from motok.sim.reference import ReferenceLibrary
 class NavigationTaskConfig:
     episode_seconds: In[float, "> 0"] = 8.0  # an episode's length (two targets)
     retarget_seconds: In[float, "> 0"] = 4.0  # a new target this often (120 control steps at 30 Hz)
-    min_distance: In[float, ">= 0"] = 5.0  # m, new targets from the root
-    max_distance: In[float, ">= 0"] = 10.0
+    min_distance: In[float, ">= 0"] = 0.0  # m, new targets from the root: "within 10 m" (C.3); the fork's code: 5
+    max_distance: In[float, ">= 0"] = 10.0  # m
     speed: In[float, ">= 0"] = 1.0  # u, m/s toward the target that earns the full velocity term
-    reach_radius: In[float, "> 0"] = 0.5  # m: the velocity term is 1 within it; "reached" for evaluation
+    reach_radius: In[float, "> 0"] = 0.5  # m: arrival (the reward's maximum within it); "reached" for evaluation
+    # Eq. 16's maximum (w_pos + w_vel) anywhere within reach_radius (C.3); false: only the velocity
+    # term is 1 there and the position term decays on (the fork's code)
+    full_reward_on_arrival: bool = True
     k_pos: In[float, ">= 0"] = 0.5  # exp(-k_pos d^2)
     w_pos: In[float, ">= 0"] = 0.7
     w_vel: In[float, ">= 0"] = 0.3  # weight of the velocity term
     fall_height: In[float, "> 0"] = 0.5  # m, head height
     early_termination: bool = True
     head_body: str | None = None  # the body tested for falls; None: the skeleton's head joint
+
+    # What a config saved before a key existed did (motok.config.from_dict): the velocity term alone was
+    # full within the radius.
+    KEYS_ADDED = {"full_reward_on_arrival": False}
 
     def __post_init__(self):
         for name in ("episode_seconds", "retarget_seconds", "reach_radius"):
@@ -235,9 +242,9 @@ def evaluate_navigation(mdp: TaskEnv, act: Callable[[np.ndarray, np.ndarray], np
     ``goal_speed_mean`` / ``goal_speed_median``; per target, the root's distance when it appeared
     and the closest it came while it was current (``start_distances``, ``closest_distances``, m)
     with their means and ``approach_share``, the mean share of the starting distance closed
-    (``1 - closest / start``: 1 at the target, 0 for no step toward it; the paper's reached share
-    is 0 for a policy that walks toward a 5-10 m target at the rewarded 1 m/s, which this tells
-    from one that stands); and ``idle_bodies``: the body positions
+    (``1 - closest / start``: 1 at the target, 0 for no step toward it; a target beyond 4 m is out
+    of reach at the rewarded 1 m/s, so the reached share alone does not tell a policy that walks
+    toward it from one that stands); and ``idle_bodies``: the body positions
     ``(T, J, 3)`` (MuJoCo frame, control rate) of every stay within the radius, slower than
     ``idle_speed`` (m/s), of at least :data:`MIN_IDLE_SECONDS`, for the idle phase's motion matching."""
     if not isinstance(mdp.task, NavigationTask):
@@ -327,4 +334,5 @@ def report(res: dict, data, lib) -> dict:
     return res
 
 
-SPEC = TaskSpec("navigation", NavigationTaskConfig, NavigationTask, evaluate_navigation, report)  # appendix C.3
+# appendix C.3; Table 8: one active codebook (the authors' code: num_quants 1)
+SPEC = TaskSpec("navigation", NavigationTaskConfig, NavigationTask, evaluate_navigation, report, codebooks=1)

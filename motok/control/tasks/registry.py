@@ -39,6 +39,9 @@ class TaskSpec:
     task: type  # its Task class, built as task(config, env, library, rng)
     evaluate: Callable  # evaluate(mdp, act, episodes) -> dict: the task's metrics over whole episodes
     report: Callable = _as_is  # report(result, data, library) -> result: what a full evaluation adds from the dataset
+    # The active codebooks M the paper learns the task with over a residual prior (Tables 6-8), the
+    # default of a run's ``codebooks``; None: all of the prior's (a task the paper does not have).
+    codebooks: int | None = None
 
 
 def names() -> list[str]:

@@ -47,7 +47,8 @@
 # the priors the `priors` stage distils (and the task stages use), TABLE1=0 leaves their Table 1
 # generations to `prioreval`; SEEDS="0 1 2" the training seeds of every task cell (--set seed=N; the
 # evaluations draw the same episodes, seed 0, for every run), TASKS (some of: inbetween hmd navigation;
-# unset: all), CONTINUOUS_SET=ppo.lr=5e-5 the continuous prior's one --set (empty: the recipe's);
+# unset: all), CONTINUOUS_SET=KEY=VALUE one --set for the continuous prior's runs (default none: the recipes give it
+# its exploration std and learning rate);
 # R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
 # GEN_N=64 samples of GEN_SECONDS=30 s per Table 1 row, EVAL_N=256 task episodes, BALLS_N=64
@@ -105,7 +106,7 @@ TASK_PRIORS=()  # the task tables' four priors, among those PRIORS names
 for k in continuous discrete discrete+ hybrid; do case " ${PRIORS[*]} " in *" $k "*) TASK_PRIORS+=("$k") ;; esac; done
 # the continuous prior's Gaussian policy at Tables 6-8's lr: at the recipes' 3e-4 its updates leave
 # PPO's trust region (docs/results.md); empty: the recipe's, like every other prior
-CONTINUOUS_SET=${CONTINUOUS_SET-ppo.lr=5e-5}
+CONTINUOUS_SET=${CONTINUOUS_SET-}
 DATA=$R/bandai2.h5
 EXPERT=$R/expert_set2
 export MOTOK_NO_PROGRESS=${MOTOK_NO_PROGRESS:-1}
@@ -284,13 +285,13 @@ stage_tasks() {
     done
 }
 
-# Fig. 13: the navigation policy over the first M codebooks of the hybrid prior, and discrete+ over
-# the hybrid's best M (4 of 8) for the two at equal M; the M = all rows are `tasks`' navigation runs
-# (all while task_navigation.yaml leaves `codebooks` null; else its M, and Fig. 13 compares to that).
+# Fig. 13: the navigation policy over the first M codebooks of the hybrid prior against all 8, and
+# discrete+ over the first 4 against the hybrid's 4 (the two at equal M). M = 1 is `tasks`'
+# navigation run: the task's protocol default (docs/control/tasks.md).
 stage_codebooks() {
     local s m
     for s in "${SEEDS[@]}"; do
-        for m in 1 2 4; do
+        for m in 2 4 8; do
             seeded navigation hybrid "$s" "$(task_dir navigation "hybrid_m$m" "$s")" --codebooks "$m"
         done
         seeded navigation discrete+ "$s" "$(task_dir navigation "discrete+_m4" "$s")" --codebooks 4
@@ -348,8 +349,8 @@ stage_plots() {
         plot "$task" "$keys" "${runs[@]}"
     done
     plot codebooks r_task,episode_seconds,eval_approach_share,eval_falls_per_episode \
-        "$(task_dir navigation hybrid_m1 "$s")" "$(task_dir navigation hybrid_m2 "$s")" \
-        "$(task_dir navigation hybrid_m4 "$s")" "$(task_dir navigation hybrid "$s")" "$(task_dir navigation discrete+_m4 "$s")"
+        "$(task_dir navigation hybrid "$s")" "$(task_dir navigation hybrid_m2 "$s")" \
+        "$(task_dir navigation hybrid_m4 "$s")" "$(task_dir navigation hybrid_m8 "$s")" "$(task_dir navigation discrete+_m4 "$s")"
 }
 
 ALL=(data expert priors prioreval tasks codebooks t2p plots)

@@ -62,13 +62,13 @@ PAPER = {
 
 # The paper's claims, each "A better than B" on every column of its table: the hybrid prior is the
 # best for task learning (abstract, section 6.3: Tables 2-3 and navigation); and Fig. 13: a policy
-# over the first M codebooks of the hybrid does better than one over all of them, and the hybrid
-# beats discrete+ at equal M. (task, A, B, source); a bare prior name is the run at its recipe's
-# codebooks (all while the recipe leaves them null).
+# over the first M codebooks of the hybrid does better than one over all 8, and the hybrid beats
+# discrete+ at equal M. (task, A, B, source); a bare prior name is the run at its task's protocol
+# codebooks (navigation: 1), ``PRIOR_mM`` the run over the first M.
 CLAIMS = [(t, "hybrid", other, src) for t, src in (("inbetween", "Table 2"), ("hmd", "Table 3"),
                                                    ("navigation", "section 6.3"))
           for other in ("continuous", "discrete", "discrete+")] + [
-    ("navigation", f"hybrid_m{m}", "hybrid", "Fig. 13") for m in (1, 2, 4)] + [
+    ("navigation", a, "hybrid_m8", "Fig. 13") for a in ("hybrid", "hybrid_m2", "hybrid_m4")] + [
     ("navigation", "hybrid_m4", "discrete+_m4", "Fig. 13")]
 
 _RUN = re.compile(r"^(inbetween|hmd|navigation)_(.+)_seed(\d+)$")

@@ -154,20 +154,20 @@ def test_every_task_cell_is_trained_on_every_seed_at_one_budget(tmp_path):
         t, k, s = out_of(a).rsplit("_", 2)
         assert a[a.index("--task") + 1] == t and a[a.index("--recipe") + 1] == f"recipes/control/task_{t}.yaml"
         assert Path(a[a.index("--prior") + 1]).name == f"prior_{k}"
-        # the continuous prior's Gaussian policy at Tables 6-8's lr, every other at its recipe's
-        assert sets(a) == ["iterations=3000", f"seed={s.removeprefix('seed')}"] + (
-            ["ppo.lr=5e-5"] if k == "continuous" else [])
+        # every prior at its recipe's settings (the continuous prior's std and lr are the recipe's)
+        assert sets(a) == ["iterations=3000", f"seed={s.removeprefix('seed')}"]
         assert Path(a[a.index("-o") + 1]).parent.name == "tasks" and "--resume" not in a
     cmds = queue(tmp_path / "plain", "tasks", checkpoints=["prior_continuous"],
-                 env={"SEEDS": "3", "TASKS": "inbetween", "CONTINUOUS_SET": ""})
-    assert [(out_of(a), sets(a)) for a in cmds] == [("inbetween_continuous_seed3", ["iterations=3000", "seed=3"])]
+                 env={"SEEDS": "3", "TASKS": "inbetween", "CONTINUOUS_SET": "net.std=0.2"})
+    assert [(out_of(a), sets(a)) for a in cmds] == [("inbetween_continuous_seed3",
+                                                     ["iterations=3000", "seed=3", "net.std=0.2"])]
 
 
 def test_fig13_runs_over_the_first_codebooks_on_every_seed(tmp_path):
     cmds = queue(tmp_path, "codebooks", checkpoints=["prior_hybrid", "prior_discrete+"], env={"SEEDS": "0 1 2"})
     runs = [(out_of(a), a[a.index("--codebooks") + 1]) for a in cmds]
     assert runs == [(f"navigation_{k}_m{m}_seed{s}", str(m)) for s in (0, 1, 2)
-                    for k, m in (("hybrid", 1), ("hybrid", 2), ("hybrid", 4), ("discrete+", 4))]
+                    for k, m in (("hybrid", 2), ("hybrid", 4), ("hybrid", 8), ("discrete+", 4))]
 
 
 def test_bad_seeds_or_tasks_stop_the_queue_before_anything_runs(tmp_path):

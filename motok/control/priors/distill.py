@@ -38,6 +38,7 @@ from motok.control.priors.dagger import DaggerBatch, DaggerCollector
 from motok.control.priors.load import StudentPolicy
 from motok.control.priors.kinds import KINDS
 from motok.control.priors.model import KIND, DistillConfig, LatentPrior, Latents, squared_norm
+from motok.control.priors.parts import goal_parts
 from motok.control.rl import runner
 from motok.control.rl.networks import ActorCritic
 from motok.control.rl.ppo import average_gradients, world_size
@@ -99,7 +100,8 @@ class DistillTrainer:
         torch.manual_seed(cfg.seed)  # the same initial weights on every rank (the runner reseeds ranks > 0 after)
         self.mdp = m = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, runner.rank_seed(cfg.seed, d.rank))
         device = m.env.torch_device if m.env.on_device else None  # the student and teacher where the rollout is
-        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim).to(device)
+        parts = goal_parts(hum.skeleton, m.goal_dim) if KINDS[cfg.prior.kind].parts else None
+        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim, parts).to(device)
         self.expert = expert.eval().requires_grad_(False).to(device)
         if expert.norm.mean.shape[0] != m.obs_dim + m.goal_dim:
             raise UserError(f"the expert reads {expert.norm.mean.shape[0]} inputs, the task gives "

@@ -6,6 +6,7 @@ generation, the imitation evaluation and task training over each kind."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,15 +14,15 @@ import numpy as np
 import pytest
 import torch
 
+from typer.testing import CliRunner
+
+from motok.cli.main import app
 from motok.config import load_config
 from motok.control.highlevel.heads import PartCategoricalPolicy
-from motok.control.highlevel.policy import (HighLevelNetConfig, TaskTrainConfig, action_space, build_high_level,
-                                            load_task_run)
-from motok.control.highlevel.train import train_from_prior
+from motok.control.highlevel.policy import HighLevelNetConfig, action_space, build_high_level, load_task_run
 from motok.control.mdp.resets import reference_state
 from motok.control.priors import distill
 from motok.control.priors.distill import distill_loss
-from motok.control.priors.evaluate import evaluate_prior
 from motok.control.priors.generate import rollout
 from motok.control.priors.kinds import KINDS
 from motok.control.priors.model import DistillConfig, LatentPrior, load_prior
@@ -34,7 +35,9 @@ from tiny_runs import small_prior_config, tiny_prior_bundle
 pytestmark = pytest.mark.usefixtures("one_thread")
 RECIPES = Path(__file__).resolve().parent.parent / "recipes" / "control"
 NEW = ("hybrid-fsq", "hybrid-grvq", "hybrid-parts")
-W = {"action": 10.0, "reg": 0.05, "commit": 1.0, "mm": 1.0, "kl": 0.0}
+W = {"action": 10.0, "reg": 0.05, "commit": 1.0, "mm": 1.0, "kl": 0.0, "part": 1.0}
+TINY_TASK = ("iterations=2", "save_every=1000", "env.num_envs=4", "env.nthread=1", "ppo.horizon=8",
+             "ppo.minibatch_size=16", "ppo.epochs=1", "net.policy=[16]", "net.value=[16]")
 
 
 def recipe_model(kind: str) -> LatentPrior:
@@ -53,7 +56,8 @@ def small_model(kind: str, **kw) -> tuple[LatentPrior, torch.Tensor]:
 
 def test_the_rows_say_which_terms_of_eq6_each_new_kind_has():
     assert KINDS["hybrid-fsq"].losses == ("mm_loss",)  # FSQ: no commitment loss
-    assert KINDS["hybrid-grvq"].losses == KINDS["hybrid-parts"].losses == ("commit_loss", "mm_loss")
+    assert KINDS["hybrid-grvq"].losses == ("commit_loss", "mm_loss")
+    assert KINDS["hybrid-parts"].losses == ("commit_loss", "mm_loss", "part_loss")
     assert all(KINDS[k].margin and KINDS[k].residual and KINDS[k].schedule == "mm" for k in NEW)
     assert [k for k, c in KINDS.items() if c.parts] == ["hybrid-parts"]
 
@@ -180,6 +184,43 @@ def test_eq6_gradients_of_the_group_rvq_kinds(kind, quantizer):
         assert model.posterior[0].weight.grad is None
 
 
+def parts_model(**kw) -> tuple[LatentPrior, torch.Tensor]:
+    """A part-wise prior on 10 observation and 6 goal entries (goal 0-2 lower, 3-5 upper), 4 actuators
+    (0, 1 lower; 2, 3 upper); latent 8: dimensions 0-3 the lower group, 4-7 the upper."""
+    torch.manual_seed(0)
+    layout = (np.array([0, 0, 0, 1, 1, 1]), np.array([0, 0, 1, 1]))
+    return LatentPrior(replace(small_prior_config("hybrid-parts"), **kw), 10, 6, 4, layout), torch.randn(64, 16)
+
+
+def test_l_part_on_a_linear_decoder_by_hand():
+    """With a linear decoder ``a = A [s, z_bar]``, redrawing group g's margin changes the actions by
+    ``A_g (y_g' - y_g)``: ``L_part`` is the change on the other part's actuators only, so it is zero
+    when the lower group drives only the legs and the upper group only the arms."""
+    model, x = parts_model()
+    model.decoder = torch.nn.Linear(18, 4, bias=False)
+    with torch.no_grad():
+        A = torch.zeros(4, 18)
+        A[:2, 10:14] = torch.randn(2, 4)  # lower actuators <- lower group
+        A[2:, 14:18] = torch.randn(2, 4)  # upper actuators <- upper group
+        model.decoder.weight.copy_(A)
+    model.train()
+    assert float(model(x, 4).losses["part"].detach()) == 0.0
+    with torch.no_grad():
+        model.decoder.weight[3, 11] = 0.7  # an upper actuator now reads a lower-group dimension
+    out = model(x, 4)
+    y = out.z_bar - out.z_p
+    want = (0.7 * (y.roll(1, 0)[:, 1] - y[:, 1])) ** 2  # only group 0's redraw, only actuator 3
+    assert torch.allclose(out.losses["part"], want.mean(), rtol=1e-5)
+    model.eval()
+    assert float(model(x).losses["part"]) == 0.0  # a training term only
+
+
+def test_l_part_reaches_the_decoder_and_posterior_not_the_prior():
+    model, x = parts_model()
+    assert term_grads(model, x, "part_loss") == {"posterior": True, "prior": False, "decoder": True,
+                                                 "quantizer": False}
+
+
 def test_group_rvq_decodes_the_sum_of_one_code_per_column_for_every_depth():
     model, x = small_model("hybrid-grvq")  # 2 groups x 4 codebooks of 16 codes, latent 8
     model.eval()
@@ -228,7 +269,8 @@ def test_the_body_parts_come_from_the_skeleton_tree(hum):
 def test_each_half_of_the_part_posterior_reads_only_its_parts_goal(hum):
     obs_dim, goal_dim = 10, 21 * 15
     torch.manual_seed(0)
-    model = LatentPrior(small_prior_config("hybrid-parts"), obs_dim, goal_dim, 4, goal_parts(hum.skeleton, goal_dim))
+    model = LatentPrior(small_prior_config("hybrid-parts"), obs_dim, goal_dim, 4,
+                        (goal_parts(hum.skeleton, goal_dim), np.array([0, 0, 1, 1])))
     x = torch.randn(32, obs_dim + goal_dim, requires_grad=True)
     z = model.posterior_latent(x)
     lower_goal = torch.as_tensor(goal_parts(hum.skeleton, goal_dim) == 0)
@@ -287,15 +329,16 @@ def test_a_new_kind_distils_loads_identically_generates_evaluates_and_trains_a_t
     idx = res["indices"]
     assert idx.shape == (6, 3, loaded.columns(1)) and (idx >= 0).all() and (idx < loaded.quantizer.codebook_size).all()
     assert res["alive"][:, 0].all() and res["pos"].shape[:2] == (3, 7)
-    # the imitation evaluation with the first codebook only
-    ev = evaluate_prior(run, codebooks=1)
-    assert ev["overall"]["clips"] == 3 and ev["checkpoint"]["codebooks"] == 1
-    # task learning over it: two PPO iterations on navigation with M = 1
-    tcfg = TaskTrainConfig(seed=0, iterations=2, save_every=1000, task="navigation")
-    tcfg.env.num_envs, tcfg.env.nthread = 4, 1
-    tcfg.ppo = replace(tcfg.ppo, horizon=8, minibatch_size=16, epochs=1)
-    tcfg.net = HighLevelNetConfig(policy=[16], value=[16])
-    train_from_prior(tcfg, run, tmp_path / "nav", codebooks=1)
+    # the commands: the imitation evaluation with the first codebook only, two PPO iterations of
+    # navigation over the frozen prior with M = 1
+    r = CliRunner().invoke(app, ["control", "eval", "--task", "imitation", "--prior", str(run), "--codebooks", "1",
+                                 "--json"])
+    assert r.exit_code == 0, r.output
+    ev = json.loads((run / "eval_m1.json").read_text())
+    assert len(ev["clips"]) == 3 and ev["checkpoint"]["codebooks"] == 1
+    r = CliRunner().invoke(app, ["control", "train", "--task", "navigation", "--prior", str(run), "--codebooks", "1",
+                                 "-o", str(tmp_path / "nav"), "--json", *(f"--set={x}" for x in TINY_TASK)])
+    assert r.exit_code == 0, r.output
     _, _, ac, model, _, tmeta = load_task_run(tmp_path / "nav")
     space = tmeta["extra"]["high_level_action"]
     assert space["heads"] == model.columns(1) == ac.policy.action_shape[0]

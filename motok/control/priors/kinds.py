@@ -43,7 +43,7 @@ class Kind:
         """The bottleneck's own terms of Eq. 6 that distillation logs."""
         if self.gaussian:
             return ("kl_loss",)
-        return ("commit_loss",) * self.commitment + ("mm_loss",) * self.margin
+        return ("commit_loss",) * self.commitment + ("mm_loss",) * self.margin + ("part_loss",) * self.parts
 
     @property
     def schedule(self) -> str | None:

@@ -102,7 +102,7 @@ class Latents:
     z_bar: Tensor  # what the decoder read
     z_p: Tensor | None  # prior latent (continuous: the prior mean); None without a prior network
     reg: list[Tensor]  # latents whose change between neighbouring steps L_reg penalises
-    losses: dict[str, Tensor]  # "commit", "codebook", "mm", "kl": zero-dim, unweighted
+    losses: dict[str, Tensor]  # "commit", "codebook", "mm", "kl", "part": zero-dim, unweighted
     indices: Tensor | None = None  # (B, N) code indices, -1 for codebooks a batch did not use
     stats: dict = field(default_factory=dict)  # the quantizer's: usage, perplexity, dead, num_active
 
@@ -143,11 +143,12 @@ class LatentPrior(nn.Module):
     Inputs of :meth:`forward` are ``[s, s~]`` rows already normalised by :attr:`norm` (the
     student's own :class:`~motok.control.rl.networks.RunningNorm`, saved with the weights).
 
-    ``goal_parts`` (``hybrid-parts``): the body part of every goal entry
-    (:func:`motok.control.priors.parts.goal_parts`). The masks it gives are buffers, saved with the
-    weights, so a loaded prior needs none; without it every half of ``z`` reads the whole goal."""
+    ``parts`` (``hybrid-parts``): ``(goal, action)``, the body part of every goal entry and of every
+    actuator (:func:`motok.control.priors.parts.body_layout`). They are buffers, saved with the
+    weights, so a loaded prior needs none; without them every half of ``z`` reads the whole goal
+    and ``L_part`` is zero."""
 
-    def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int, goal_parts=None):
+    def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int, parts=None):
         super().__init__()
         cfg.check()
         self.cfg, self.kind = cfg, cfg.kind
@@ -162,10 +163,12 @@ class LatentPrior(nn.Module):
             if self.caps.prior_network else None
         self.quantizer = QUANTIZERS[self.caps.quantizer](cfg, self.caps) if not gaussian else None
         if self.caps.parts:  # row g: which posterior inputs the margin's group g reads (s always, its part's goal)
-            keep = torch.ones(len(PART_NAMES), obs_dim + goal_dim)
-            if goal_parts is not None:
-                keep[:, obs_dim:] = torch.as_tensor(goal_parts)[None] == torch.arange(len(PART_NAMES))[:, None]
+            keep, actuators = torch.ones(len(PART_NAMES), obs_dim + goal_dim), torch.full((action_dim,), -1)
+            if parts is not None:
+                keep[:, obs_dim:] = torch.as_tensor(parts[0])[None] == torch.arange(len(PART_NAMES))[:, None]
+                actuators = torch.as_tensor(parts[1])
             self.register_buffer("part_inputs", keep)
+            self.register_buffer("action_parts", actuators)  # -1: unknown, no actuator is another part's
         # out_gain 0.01: the student starts near zero offsets, i.e. holding its pose.
         self.decoder = mlp([obs_dim + D, *cfg.decoder_hidden, action_dim], act, out_gain=0.01)
 
@@ -224,7 +227,7 @@ class LatentPrior(nn.Module):
         posterior rather than its mean."""
         s = xn[..., :self.obs_dim]
         zero = xn.new_zeros(())
-        losses = {"commit": zero, "codebook": zero, "mm": zero, "kl": zero}
+        losses = {"commit": zero, "codebook": zero, "mm": zero, "kl": zero, "part": zero}
         head = self.posterior_latent(xn)
         if self.caps.gaussian:
             mu_q, log_std_q = self._gaussian(head)
@@ -242,7 +245,25 @@ class LatentPrior(nn.Module):
             return Latents(self.decode(s, q.z_q), z, q.z_q, None, [q.z_q], losses, q.indices, q.stats)
         z_bar = z_p.detach() + q.z_q  # z_bar = sg(z_p) + y_bar: the action loss never reaches the prior
         losses["mm"] = squared_norm(z_bar - z_p).mean()  # L_mm, section 4.1
-        return Latents(self.decode(s, z_bar), z, z_bar, z_p, [q.z_q, z_p], losses, q.indices, q.stats)
+        action = self.decode(s, z_bar)
+        if self.caps.parts and self.training:
+            losses["part"] = self.cross_part_change(s, z_p.detach(), q.z_q, action.detach())
+        return Latents(action, z, z_bar, z_p, [q.z_q, z_p], losses, q.indices, q.stats)
+
+    def cross_part_change(self, s: Tensor, z_p: Tensor, y_bar: Tensor, action: Tensor) -> Tensor:
+        """``L_part`` (``hybrid-parts``, not the paper's): for each part g, the margin's group g
+        replaced by the previous row's (another state's codes), ``||a' - sg(a)||^2`` over the actuators
+        of the *other* parts, summed over g, mean over rows: the decoder learns that a part's codes
+        leave the other parts' actuators alone."""
+        w = self.cfg.latent_dim // len(PART_NAMES)
+        group = torch.arange(self.cfg.latent_dim, device=s.device) // w
+        total = action.new_zeros(())
+        for g in range(len(PART_NAMES)):
+            mine = (group == g).to(y_bar.dtype)
+            swapped = self.decode(s, z_p + y_bar * (1 - mine) + y_bar.roll(1, 0) * mine)
+            others = ((self.action_parts != g) & (self.action_parts >= 0)).to(action.dtype)
+            total = total + squared_norm((swapped - action) * others).mean()
+        return total
 
     # ------------------------------------------------------------------ what task learning drives
     @torch.no_grad()
@@ -293,6 +314,8 @@ class LossConfig:
     commit: In[float, ">= 0"] = 1.0  # beta
     reg: In[float | None, ">= 0"] = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
     mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
+    # hybrid-parts: L_part, a part's codes must not move the other parts' actuators (beyond the paper)
+    part: In[float, ">= 0"] = 1.0
     kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
 
 

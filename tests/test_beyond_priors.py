@@ -23,7 +23,7 @@ from motok.control.highlevel.policy import HighLevelNetConfig, action_space, bui
 from motok.control.mdp.resets import reference_state
 from motok.control.priors import distill
 from motok.control.priors.distill import distill_loss
-from motok.control.priors.generate import rollout
+from motok.control.priors.generate import generate, rollout
 from motok.control.priors.kinds import KINDS
 from motok.control.priors.model import DistillConfig, LatentPrior, load_prior
 from motok.control.priors.parts import PART_NAMES, action_parts, body_parts, goal_parts
@@ -329,6 +329,8 @@ def test_a_new_kind_distils_loads_identically_generates_evaluates_and_trains_a_t
     idx = res["indices"]
     assert idx.shape == (6, 3, loaded.columns(1)) and (idx >= 0).all() and (idx < loaded.quantizer.codebook_size).all()
     assert res["alive"][:, 0].all() and res["pos"].shape[:2] == (3, 7)
+    summary = generate(run, tmp_path / "gen.h5", codebooks=1, seconds=0.5, num_samples=2, fall_height=-1.0)
+    assert summary["written"] == 2 and summary["codebooks"] == 1
     # the commands: the imitation evaluation with the first codebook only, two PPO iterations of
     # navigation over the frozen prior with M = 1
     r = CliRunner().invoke(app, ["control", "eval", "--task", "imitation", "--prior", str(run), "--codebooks", "1",

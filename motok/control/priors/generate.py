@@ -10,7 +10,9 @@ the current-pose base (``q_hat = q + scale a``, as in distillation).
 * discrete+, hybrid: one index per codebook for the first M codebooks, each uniform and
   independent (``z_bar`` = the sum of the codes; hybrid: ``z_p(s)`` plus that sum);
 * continuous: ``z ~ N(mu_p(s), sigma_p(s)^2)``, the prior Gaussian;
-* hybrid and hybrid-vq with M = 0: ``z_bar = z_p(s)``, the prior alone (no margin), which tells
+* hybrid-grvq, hybrid-parts: one index per (group, codebook) of the first M codebooks of every group;
+  hybrid-fsq: one level per channel of the first M channel groups (a uniform code per group);
+* every hybrid with M = 0: ``z_bar = z_p(s)``, the prior alone (no margin), which tells
   whether a sample's fall comes from the random margins or from the prior itself.
 
 A sample ends at the requested length, or when it falls (the head below ``fall_height``, 0.5 m)

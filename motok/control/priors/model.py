@@ -314,8 +314,9 @@ class LossConfig:
     commit: In[float, ">= 0"] = 1.0  # beta
     reg: In[float | None, ">= 0"] = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
     mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
-    # hybrid-parts: L_part, a part's codes must not move the other parts' actuators (beyond the paper)
-    part: In[float, ">= 0"] = 1.0
+    # hybrid-parts: weight of L_part, a part's codes must not move the other parts' actuators (beyond the
+    # paper); 10, the action term's: at 1 the short check measured no tie at all (docs/control/priors.md)
+    part: In[float, ">= 0"] = 10.0
     kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
 
 

@@ -37,10 +37,10 @@ import torch
 from motok.checkpoint import register_kind
 from motok.config import from_dict
 from motok.control import runs
+from motok.control.highlevel.heads import PartCategoricalPolicy
 from motok.control.mdp.actions import residual_targets
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.priors.load import check_codebooks
-from motok.control.highlevel.heads import PartCategoricalPolicy
 from motok.control.priors.model import LatentPrior, load_prior
 from motok.control.priors.parts import PART_NAMES
 from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet

@@ -101,9 +101,11 @@ class GroupedRVQ(Quantizer):
     def codebooks(self) -> Tensor:
         """``(N * G, K, D)`` in column order, each group's codes in its own dimensions (zero
         elsewhere), so that the sum of one code per column is what :meth:`decode` gives."""
-        out = torch.zeros(self.num_codebooks * self.groups, self.codebook_size, self.dim)
+        out = None
         for g, q in enumerate(self.parts):
             books = q.codebooks()
+            if out is None:
+                out = books.new_zeros(self.num_codebooks * self.groups, self.codebook_size, self.dim)
             for level in range(self.num_codebooks):
                 out[level * self.groups + g, :, g * self.width:(g + 1) * self.width] = books[level]
         return out
@@ -181,8 +183,8 @@ class GroupedFSQ(FSQuantizer):
     def codebooks(self) -> Tensor:
         """``(G * C, L, D)``: what each channel's level adds through the output projection (its bias,
         which every code shares, not included)."""
-        hw = float(self.half_width[0])
-        values = (torch.arange(self.num_levels, dtype=torch.float32) - hw) / hw  # (L,)
-        eye = torch.eye(self.groups * self.channels)
+        hw, device = float(self.half_width[0]), self.half_width.device
+        values = (torch.arange(self.num_levels, dtype=torch.float32, device=device) - hw) / hw  # (L,)
+        eye = torch.eye(self.groups * self.channels, device=device)
         weight = self.project_out.weight.T if isinstance(self.project_out, nn.Linear) else eye
         return values[None, :, None] * weight[:, None, :]

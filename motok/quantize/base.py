@@ -231,6 +231,15 @@ class Quantizer(nn.Module):
         """Every code's value, ``(N, K, D)``."""
         raise NotImplementedError
 
+    def columns(self, m: int) -> int:
+        """Index columns the first ``m`` codebooks fill (a prefix): one each here; the grouped
+        quantizers (:mod:`motok.quantize.grouped`) fill several."""
+        return m
+
+    def column_groups(self, m: int) -> Tensor:
+        """The group of each of the first :meth:`columns` ``(m)`` columns: one group here."""
+        return torch.zeros(self.columns(m), dtype=torch.long)
+
     def _next_generator(self) -> torch.Generator:
         seed = (int(self.rng_seed) * 0x9E3779B97F4A7C15 + int(self.train_steps)) % 2**63
         self.train_steps += 1

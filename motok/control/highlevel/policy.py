@@ -11,7 +11,14 @@ proprioception ``s`` (Eq. 7) and the task goal ``g`` and chooses the latent:
   are codes of the margin to the prior);
 * ``continuous``: a Gaussian offset ``u`` with a fixed exploration std (``net.std``, 0.04 as the
   authors' code fixes it; the paper's Fig. 4 right shows the result depends on it),
-  ``z = mu_p(s) + u`` (Eq. 2's prior mean).
+  ``z = mu_p(s) + u`` (Eq. 2's prior mean);
+* ``hybrid-grvq``: one categorical per (group, active codebook): ``G * M`` heads;
+* ``hybrid-fsq``: one categorical per channel of the first M channel groups, its levels as
+  classes (``M * C`` heads of L classes); the chosen levels are the margin's code;
+* ``hybrid-parts``: one network per body part (:mod:`motok.control.highlevel.heads`), each with a
+  categorical per active codebook of its part, so a later task can drive the parts with two goals.
+
+Every head is a column of the prior's code indices (``LatentPrior.columns``), in its order.
 
 The environment sees the decoder's action: :class:`LatentActionMap` is the action map of
 ``motok.control.mdp.task_env.TaskEnv`` that turns the high-level action into PD targets on the
@@ -32,10 +39,12 @@ import torch
 from motok.checkpoint import register_kind
 from motok.config import from_dict
 from motok.control import runs
+from motok.control.highlevel.heads import PartCategoricalPolicy
 from motok.control.mdp.actions import residual_targets
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.priors.load import check_codebooks
 from motok.control.priors.model import LatentPrior, load_prior
+from motok.control.priors.parts import PART_NAMES
 from motok.control.rl.networks import ActorCritic, RunningNorm, ValueNet
 from motok.control.rl.policies import MLPPolicy, MultiCategoricalPolicy
 from motok.control.rl.ppo import PPOConfig
@@ -90,12 +99,18 @@ class LatentActionMap:
 
 
 def action_space(model: LatentPrior, codebooks: int | None) -> dict:
-    """What the high-level policy chooses: ``{"kind", "codebooks", "codes"|"latent_dim"}``."""
+    """What the high-level policy chooses: ``{"kind", "codebooks", "heads", "codes"[, "parts"]}``
+    (``heads`` categoricals of ``codes`` classes each; ``parts``: heads per body part) or
+    ``{"kind", "codebooks", "latent_dim"}`` for the continuous prior."""
     m = check_codebooks(model, codebooks)
     if model.quantizer is None:
         return {"kind": "gaussian offset u, z = mu_p(s) + u", "codebooks": 0, "latent_dim": model.cfg.latent_dim}
-    return {"kind": "code indices, one categorical per codebook", "codebooks": m,
-            "codes": model.quantizer.codebook_size}
+    space = {"kind": "code indices, one categorical per index column", "codebooks": m, "heads": model.columns(m),
+             "codes": model.quantizer.codebook_size}
+    if model.caps.parts:
+        groups = model.quantizer.column_groups(m)
+        space["parts"] = {n: int((groups == g).sum()) for g, n in enumerate(PART_NAMES)}
+    return space
 
 
 def build_high_level(net: HighLevelNetConfig, model: LatentPrior, obs_dim: int, goal_dim: int,
@@ -111,8 +126,11 @@ def build_high_level(net: HighLevelNetConfig, model: LatentPrior, obs_dim: int, 
         if net.std <= 0:
             raise UserError(f"net.std must be positive, not {net.std}")
         pol = MLPPolicy(d, model.cfg.latent_dim, tuple(net.policy), net.activation, math.log(net.std), False)
+    elif "parts" in space:
+        pol = PartCategoricalPolicy(d, model.quantizer.column_groups(space["codebooks"]), space["codes"], PART_NAMES,
+                                    tuple(net.policy), net.activation)
     else:
-        pol = MultiCategoricalPolicy(d, space["codebooks"], space["codes"], tuple(net.policy), net.activation)
+        pol = MultiCategoricalPolicy(d, space["heads"], space["codes"], tuple(net.policy), net.activation)
     return ActorCritic(RunningNorm(d), pol, ValueNet(d, tuple(net.value), net.activation))
 
 

@@ -94,7 +94,7 @@ class DaggerCollector:
         b = DaggerBatch(z(T, N, mdp.obs_dim + mdp.goal_dim), z(T, N, mdp.action_dim), z(T, N),
                         z(T, N, dtype=torch.bool), z(T, N, dtype=torch.bool))
         err = z(T, N)
-        idx = torch.full((T, N, max(model.num_codebooks, 1)), -1, dtype=torch.long, device=dev)
+        idx = torch.full((T, N, max(model.columns(), 1)), -1, dtype=torch.long, device=dev)
         host = (lambda a_: a_) if self.on_device else (lambda a_: a_.numpy())  # noqa: E731  (what the MDP takes)
         model.eval()
         for t in range(T):

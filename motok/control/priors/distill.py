@@ -8,6 +8,9 @@ over minibatches minimises Eq. 6,
 
     L = 10 ||a - a_label||^2 + alpha L_reg + beta L_commit + gamma L_mm  (+ w_kl KL(q || p))
 
+(``hybrid-fsq``: no ``L_commit``, FSQ has none; ``hybrid-parts`` adds ``w_part L_part``, not the
+paper's: ``LatentPrior.cross_part_change``)
+
 with ``L_reg`` the change of the latents between neighbouring steps of one episode (continuous:
 the posterior mean; discrete, discrete+: ``z_bar``; hybrid: ``||y_bar - y_bar'||^2 + ||z_p -
 z_p'||^2``), ``alpha`` 0.005 (continuous) or 0.05 (the others), ``beta`` 1, and ``gamma`` (L_mm,
@@ -38,6 +41,7 @@ from motok.control.priors.dagger import DaggerBatch, DaggerCollector
 from motok.control.priors.load import StudentPolicy
 from motok.control.priors.kinds import KINDS
 from motok.control.priors.model import KIND, DistillConfig, LatentPrior, Latents, squared_norm
+from motok.control.priors.parts import body_layout
 from motok.control.rl import runner
 from motok.control.rl.networks import ActorCritic
 from motok.control.tasks.imitation import eval_metrics, evaluate, subset
@@ -49,7 +53,7 @@ from motok.sim.reference import ReferenceLibrary
 
 BAR = (("act", "action_loss", "{:.3g}"), ("commit", "commit_loss", "{:.3g}"), ("usage", "code_usage", "{:.2f}"),
        ("len", "episode_seconds", "{:.2f}s"), ("succ", "success", "{:.2f}"))
-SUMMARY = ("action_loss", "rollout_action_err", "commit_loss", "mm_loss", "reg_loss", "kl_loss", "code_usage",
+SUMMARY = ("action_loss", "rollout_action_err", "commit_loss", "mm_loss", "reg_loss", "kl_loss", "part_loss", "code_usage",
            "episode_seconds", "success", "r_im", "samples_per_s")
 
 
@@ -73,10 +77,11 @@ def distill_loss(out: Latents, labels: torch.Tensor, horizon: int, done: torch.T
     the weighted sum and its unweighted terms. A gradient-learned codebook's own loss (zero for
     the EMA kinds) joins with weight 1, VQ-VAE's."""
     L = out.losses
+    part = L.get("part", L["mm"].new_zeros(()))  # hybrid-parts' L_part (beyond the paper); zero elsewhere
     terms = {"action_loss": squared_norm(out.action - labels).mean(), "reg_loss": latent_change(out.reg, horizon, done),
-             "commit_loss": L["commit"], "mm_loss": L["mm"], "kl_loss": L["kl"]}
+             "commit_loss": L["commit"], "mm_loss": L["mm"], "kl_loss": L["kl"], "part_loss": part}
     total = (w["action"] * terms["action_loss"] + w["reg"] * terms["reg_loss"] + w["commit"] * L["commit"]
-             + L["codebook"] + w["mm"] * L["mm"] + w["kl"] * L["kl"])
+             + L["codebook"] + w["mm"] * L["mm"] + w["kl"] * L["kl"] + w.get("part", 0.0) * part)
     return total, terms
 
 
@@ -98,7 +103,8 @@ class DistillTrainer:
         torch.manual_seed(cfg.seed)  # the same initial weights on every rank (the runner reseeds ranks > 0 after)
         self.mdp = m = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, runner.rank_seed(cfg.seed, d.rank))
         device = m.env.torch_device if m.env.on_device else None  # the student and teacher where the rollout is
-        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim).to(device)
+        parts = body_layout(hum, m.goal_dim) if KINDS[cfg.prior.kind].parts else None
+        self.model = LatentPrior(cfg.prior, m.obs_dim, m.goal_dim, m.action_dim, parts).to(device)
         self.expert = expert.eval().requires_grad_(False).to(device)
         if expert.norm.mean.shape[0] != m.obs_dim + m.goal_dim:
             raise UserError(f"the expert reads {expert.norm.mean.shape[0]} inputs, the task gives "
@@ -147,7 +153,7 @@ class DistillTrainer:
     def weights(self) -> dict[str, float]:
         c, it = self.cfg, self.iteration
         return {"action": c.loss.action, "reg": self.alpha, "commit": c.loss.commit,
-                "mm": c.loss.mm.at(it, c.iterations), "kl": c.loss.kl.at(it, c.iterations)}
+                "mm": c.loss.mm.at(it, c.iterations), "kl": c.loss.kl.at(it, c.iterations), "part": c.loss.part}
 
     def update(self, b: DaggerBatch) -> dict:
         c, model = self.cfg, self.model

@@ -10,7 +10,9 @@ the current-pose base (``q_hat = q + scale a``, as in distillation).
 * discrete+, hybrid: one index per codebook for the first M codebooks, each uniform and
   independent (``z_bar`` = the sum of the codes; hybrid: ``z_p(s)`` plus that sum);
 * continuous: ``z ~ N(mu_p(s), sigma_p(s)^2)``, the prior Gaussian;
-* hybrid and hybrid-vq with M = 0: ``z_bar = z_p(s)``, the prior alone (no margin), which tells
+* hybrid-grvq, hybrid-parts: one index per (group, codebook) of the first M codebooks of every group;
+  hybrid-fsq: one level per channel of the first M channel groups (a uniform code per group);
+* every hybrid with M = 0: ``z_bar = z_p(s)``, the prior alone (no margin), which tells
   whether a sample's fall comes from the random margins or from the prior itself.
 
 A sample ends at the requested length, or when it falls (the head below ``fall_height``, 0.5 m)
@@ -48,14 +50,16 @@ FALL_HEIGHT = 0.5  # m: the head below this ends a sample (the fall test of task
 def sample_latent(model: LatentPrior, s: torch.Tensor, m: int,
                   gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``(z_bar, indices)`` for normalised observations ``s`` ``(B, obs_dim)``: ``m`` code indices
-    per row, uniform and independent (``indices`` ``(B, m)``), or for the continuous prior a draw
+    per row (``model.columns(m)`` columns), uniform and independent (``indices`` ``(B, columns)``), or for the continuous prior a draw
     from the prior Gaussian (``indices`` None); ``m = 0`` with a prior network: ``z_p(s)``, no codes."""
     if model.quantizer is None:
         mu, log_std = model.prior_latent(s)
         return mu + torch.exp(log_std) * torch.randn(mu.shape, generator=gen), None
     if m == 0:
         return model.prior_latent(s)[0], torch.empty(len(s), 0, dtype=torch.long)
-    idx = torch.randint(model.quantizer.codebook_size, (len(s), m), generator=gen)
+    # One uniform index per column: per codebook, per group and codebook (group RVQ), per channel (FSQ:
+    # independent uniform levels are a uniform draw of each group's code).
+    idx = torch.randint(model.quantizer.codebook_size, (len(s), model.columns(m)), generator=gen)
     return model.codes_to_latent(s, idx, m), idx
 
 
@@ -68,7 +72,7 @@ def rollout(model: LatentPrior, hum: Humanoid, sim: SimConfig, action: ActionCon
     Returns body positions ``pos`` ``(N, steps + 1, J, 3)`` (MuJoCo frame) with the ``alive`` mask
     of the frames each sample kept (a prefix), ``stop_step`` (the step that ended a sample, -1 if
     none), ``stop`` (``"fall"``, ``"diverged"``, ``"invalid"`` or ``""``), the drawn ``indices``
-    ``(steps, N, m)`` (None for the continuous prior) and, with ``keep_qpos``, the first
+    ``(steps, N, model.columns(m))`` (None for the continuous prior) and, with ``keep_qpos``, the first
     sample's qpos per step."""
     N, head = len(qpos), hum.skeleton.head
     env = HumanoidEnv(hum, replace(sim, num_envs=N, nan_actions="terminate"))
@@ -77,7 +81,7 @@ def rollout(model: LatentPrior, hum: Humanoid, sim: SimConfig, action: ActionCon
     alive = np.zeros((N, steps + 1), bool)
     pos[:, 0], alive[:, 0] = env.bodies.pos, True
     stop_step, stop = np.full(N, -1), np.full(N, "", dtype=object)
-    indices = torch.full((steps, N, m), -1, dtype=torch.long) if model.quantizer is not None else None
+    indices = torch.full((steps, N, model.columns(m)), -1, dtype=torch.long) if model.quantizer is not None else None
     first = [env.qpos[0].copy()]
     active = np.ones(N, bool)
     for t in range(steps):

@@ -1,6 +1,7 @@
-"""The five bottlenecks of the hybrid-latent paper's priors, one capability row each: what the
-model builds, what distillation weighs and logs, and what task learning chooses follow from these
-rows, so a new kind is one row here (and a recipe), not a string test in every reader.
+"""The five bottlenecks of the hybrid-latent paper's priors, and three from its future work (the
+margin quantized by FSQ or group RVQ, and a margin split by body part), one capability row each:
+what the model builds, what distillation weighs and logs, and what task learning chooses follow
+from these rows, so a new kind is one row here (and a recipe), not a string test in every reader.
 
 Importing this module is cheap (no torch): the command line lists the kinds from it.
 """
@@ -16,12 +17,21 @@ class Kind:
 
     gaussian: bool  # posterior and prior are Gaussians (z sampled, KL(q || p)); else z is quantized
     prior_network: bool  # a prior f_theta(s) -> z_p; the hybrids quantize the margin z - sg(z_p)
-    residual: bool = False  # residual VQ: several codebooks, decodable with the first M
+    # How z (or the margin) is quantized, a name of model.QUANTIZERS: "vq" one codebook, "rvq" residual
+    # codebooks decodable with the first M, "fsq" grouped finite scalar quantization, "grvq" group RVQ
+    quantizer: str = "vq"
+    commitment: bool = True  # the quantizer has a commitment loss (FSQ has none: its tanh bound keeps z in range)
+    parts: bool = False  # the margin's groups are body parts (lower, upper), each read from its part's reference
     reg: float = 0.05  # alpha of Eq. 6 (the latent regulariser) when the recipe leaves it unset
 
     @property
     def quantized(self) -> bool:
         return not self.gaussian
+
+    @property
+    def residual(self) -> bool:
+        """Several codebooks (or channel groups), decodable with the first M."""
+        return self.quantized and self.quantizer != "vq"
 
     @property
     def margin(self) -> bool:
@@ -31,7 +41,9 @@ class Kind:
     @property
     def losses(self) -> tuple[str, ...]:
         """The bottleneck's own terms of Eq. 6 that distillation logs."""
-        return ("kl_loss",) if self.gaussian else ("commit_loss", "mm_loss") if self.margin else ("commit_loss",)
+        if self.gaussian:
+            return ("kl_loss",)
+        return ("commit_loss",) * self.commitment + ("mm_loss",) * self.margin + ("part_loss",) * self.parts
 
     @property
     def schedule(self) -> str | None:
@@ -42,7 +54,12 @@ class Kind:
 KINDS = {
     "continuous": Kind(gaussian=True, prior_network=True, reg=0.005),  # PULSE-style, Eq. 1-2
     "discrete": Kind(gaussian=False, prior_network=False),  # NCP-style, one VQ codebook, Eq. 3-4
-    "discrete+": Kind(gaussian=False, prior_network=False, residual=True),  # residual VQ
-    "hybrid": Kind(gaussian=False, prior_network=True, residual=True),  # section 4.1, Algorithm 1
+    "discrete+": Kind(gaussian=False, prior_network=False, quantizer="rvq"),  # residual VQ
+    "hybrid": Kind(gaussian=False, prior_network=True, quantizer="rvq"),  # section 4.1, Algorithm 1
     "hybrid-vq": Kind(gaussian=False, prior_network=True),  # appendix A.1: one VQ codebook for the margin
+    # The paper's future work (docs/control/priors.md): the margin by FSQ (Mentzer et al. 2023), by
+    # group RVQ (HiFi-Codec), and split into a lower-body and an upper-body group under one z_p.
+    "hybrid-fsq": Kind(gaussian=False, prior_network=True, quantizer="fsq", commitment=False),
+    "hybrid-grvq": Kind(gaussian=False, prior_network=True, quantizer="grvq"),
+    "hybrid-parts": Kind(gaussian=False, prior_network=True, quantizer="grvq", parts=True),
 }

@@ -16,6 +16,11 @@ Kinds (the capability rows of ``motok.control.priors.kinds.KINDS``):
   ``y_bar = RVQ(y)`` (EMA codebooks, dead-code reset, quantizer dropout: section 4.2),
   ``z_bar = sg(z_p) + y_bar``, and ``L_mm = ||z_bar - z_p||^2`` pulls prior and posterior together.
 * ``hybrid-vq`` (appendix A.1): the hybrid with one VQ codebook instead of RVQ.
+* ``hybrid-fsq``, ``hybrid-grvq`` (the paper's future work): the margin by grouped FSQ or group RVQ
+  (:mod:`motok.quantize.grouped`); FSQ has no commitment loss, so Eq. 6 keeps ``L_mm``, not ``L_commit``.
+* ``hybrid-parts``: group RVQ with two groups, the lower and the upper body; each half of the
+  posterior's ``z`` is computed from ``s`` and its own part's entries of the goal only
+  (:mod:`motok.control.priors.parts`), ``z_p`` shared.
 
 Where the gradients go (Algorithm 1): the decoder reads ``z_bar``, whose only path back is the
 straight-through estimator to ``z`` (the posterior); ``z_p`` enters it behind a stop-gradient, so
@@ -41,7 +46,9 @@ from motok.control.priors.kinds import KINDS, Kind
 from motok.control.rl.networks import RunningNorm, mlp
 from motok.control.tasks.imitation import ImitationTaskConfig
 from motok.errors import UserError
+from motok.control.priors.parts import PART_NAMES
 from motok.quantize.base import QuantizerConfig
+from motok.quantize.grouped import GroupedFSQ, GroupedRVQ
 from motok.quantize.registry import build_quantizer
 from motok.ranges import In
 from motok.sim.env import SimConfig
@@ -72,6 +79,11 @@ class PriorConfig:
     reset_threshold: In[float, ">= 0"] = 2.0  # EMA usage below which a code is reset (the authors' code: 2)
     quantizer_dropout: In[float, "[0, 1]"] = 1.0  # share of training batches that use only M ~ U{1..N} codebooks
     kmeans_init: bool = True  # codebooks from k-means on the first training batch
+    # hybrid-grvq: the margin's dimensions split into this many groups, each with num_codebooks residual
+    # codebooks of codebook_size codes (hybrid-parts: always two, the lower and the upper body)
+    groups: In[int, ">= 1"] = 2
+    fsq_channels: In[int, ">= 1"] = 3  # hybrid-fsq: channels per group, num_codebooks groups (M counts groups)
+    fsq_levels: In[int, ">= 3"] = 5  # hybrid-fsq: levels per channel, odd (a group not in use sits at level zero)
 
     def check(self) -> None:
         if self.kind not in KINDS:
@@ -89,7 +101,7 @@ class Latents:
     z_bar: Tensor  # what the decoder read
     z_p: Tensor | None  # prior latent (continuous: the prior mean); None without a prior network
     reg: list[Tensor]  # latents whose change between neighbouring steps L_reg penalises
-    losses: dict[str, Tensor]  # "commit", "codebook", "mm", "kl": zero-dim, unweighted
+    losses: dict[str, Tensor]  # "commit", "codebook", "mm", "kl", "part": zero-dim, unweighted
     indices: Tensor | None = None  # (B, N) code indices, -1 for codebooks a batch did not use
     stats: dict = field(default_factory=dict)  # the quantizer's: usage, perplexity, dead, num_active
 
@@ -106,13 +118,36 @@ def squared_norm(x: Tensor) -> Tensor:
     return (x * x).sum(-1)
 
 
+def quantizer_config(c: PriorConfig, residual: bool) -> QuantizerConfig:
+    """The :mod:`motok.quantize` config of a prior's codebooks (one book, or ``num_codebooks``)."""
+    return QuantizerConfig(kind="rvq" if residual else c.quantizer, rvq_base=c.quantizer,
+                           codebook_size=c.codebook_size if residual else c.vq_codebook_size,
+                           num_codebooks=c.num_codebooks if residual else 1, dim=c.latent_dim, decay=c.decay,
+                           reset_threshold=c.reset_threshold, quantizer_dropout=c.quantizer_dropout,
+                           kmeans_init=c.kmeans_init)
+
+
+# A capability row's quantizer name -> its builder (PriorConfig, Kind) -> Quantizer.
+QUANTIZERS = {
+    "vq": lambda c, k: build_quantizer(quantizer_config(c, False)),
+    "rvq": lambda c, k: build_quantizer(quantizer_config(c, True)),
+    "fsq": lambda c, k: GroupedFSQ(quantizer_config(c, True), c.num_codebooks, c.fsq_channels, c.fsq_levels),
+    "grvq": lambda c, k: GroupedRVQ(quantizer_config(c, True), len(PART_NAMES) if k.parts else c.groups),
+}
+
+
 class LatentPrior(nn.Module):
     """Normaliser + posterior + prior + quantizer + decoder of one kind (:attr:`caps`, its row of ``KINDS``).
 
     Inputs of :meth:`forward` are ``[s, s~]`` rows already normalised by :attr:`norm` (the
-    student's own :class:`~motok.control.rl.networks.RunningNorm`, saved with the weights)."""
+    student's own :class:`~motok.control.rl.networks.RunningNorm`, saved with the weights).
 
-    def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int):
+    ``parts`` (``hybrid-parts``): ``(goal, action)``, the body part of every goal entry and of every
+    actuator (:func:`motok.control.priors.parts.body_layout`). They are buffers, saved with the
+    weights, so a loaded prior needs none; without them every half of ``z`` reads the whole goal
+    and ``L_part`` is zero."""
+
+    def __init__(self, cfg: PriorConfig, obs_dim: int, goal_dim: int, action_dim: int, parts=None):
         super().__init__()
         cfg.check()
         self.cfg, self.kind = cfg, cfg.kind
@@ -125,18 +160,16 @@ class LatentPrior(nn.Module):
         self.posterior = mlp([obs_dim + goal_dim, *cfg.posterior_hidden, D * (2 if gaussian else 1)], act)
         self.prior = mlp([obs_dim, *cfg.prior_hidden, D * (2 if gaussian else 1)], act) \
             if self.caps.prior_network else None
-        self.quantizer = build_quantizer(self.quantizer_config()) if not gaussian else None
+        self.quantizer = QUANTIZERS[self.caps.quantizer](cfg, self.caps) if not gaussian else None
+        if self.caps.parts:  # row g: which posterior inputs the margin's group g reads (s always, its part's goal)
+            keep, actuators = torch.ones(len(PART_NAMES), obs_dim + goal_dim), torch.full((action_dim,), -1)
+            if parts is not None:
+                keep[:, obs_dim:] = torch.as_tensor(parts[0])[None] == torch.arange(len(PART_NAMES))[:, None]
+                actuators = torch.as_tensor(parts[1])
+            self.register_buffer("part_inputs", keep)
+            self.register_buffer("action_parts", actuators)  # -1: unknown, no actuator is another part's
         # out_gain 0.01: the student starts near zero offsets, i.e. holding its pose.
         self.decoder = mlp([obs_dim + D, *cfg.decoder_hidden, action_dim], act, out_gain=0.01)
-
-    def quantizer_config(self) -> QuantizerConfig:
-        c = self.cfg
-        residual = self.caps.residual
-        return QuantizerConfig(kind="rvq" if residual else c.quantizer, rvq_base=c.quantizer,
-                               codebook_size=c.codebook_size if residual else c.vq_codebook_size,
-                               num_codebooks=c.num_codebooks if residual else 1, dim=c.latent_dim, decay=c.decay,
-                               reset_threshold=c.reset_threshold, quantizer_dropout=c.quantizer_dropout,
-                               kmeans_init=c.kmeans_init)
 
     # ------------------------------------------------------------------ parts
     def norm_obs(self, s_raw: Tensor) -> Tensor:
@@ -164,6 +197,20 @@ class LatentPrior(nn.Module):
     def num_codebooks(self) -> int:
         return 0 if self.quantizer is None else self.quantizer.num_codebooks
 
+    def columns(self, m: int | None = None) -> int:
+        """Code-index columns of the first M codebooks (all by default): M for one or residual
+        codebooks, M * G for group RVQ, M * channels for FSQ (each column a channel's level)."""
+        return 0 if self.quantizer is None else self.quantizer.columns(self.num_codebooks if m is None else m)
+
+    def posterior_latent(self, xn: Tensor) -> Tensor:
+        """``f_phi(s, s~)``; for ``hybrid-parts`` the margin group g's dimensions come from a pass
+        that reads ``s`` and only part g's goal entries (the others at their running mean, 0)."""
+        if not self.caps.parts:
+            return self.posterior(xn)
+        w = self.cfg.latent_dim // len(PART_NAMES)  # group g of the margin is dimensions g w .. (g + 1) w
+        return torch.cat([self.posterior(xn * keep)[..., g * w:(g + 1) * w]
+                          for g, keep in enumerate(self.part_inputs)], -1)
+
     def codebooks(self) -> Tensor:
         """Every code, ``(N, K, D)`` (detached); the hybrid's are codes of the margin ``y``."""
         if self.quantizer is None:
@@ -179,8 +226,8 @@ class LatentPrior(nn.Module):
         posterior rather than its mean."""
         s = xn[..., :self.obs_dim]
         zero = xn.new_zeros(())
-        losses = {"commit": zero, "codebook": zero, "mm": zero, "kl": zero}
-        head = self.posterior(xn)
+        losses = {"commit": zero, "codebook": zero, "mm": zero, "kl": zero, "part": zero}
+        head = self.posterior_latent(xn)
         if self.caps.gaussian:
             mu_q, log_std_q = self._gaussian(head)
             mu_p, log_std_p = self.prior_latent(s)
@@ -197,18 +244,39 @@ class LatentPrior(nn.Module):
             return Latents(self.decode(s, q.z_q), z, q.z_q, None, [q.z_q], losses, q.indices, q.stats)
         z_bar = z_p.detach() + q.z_q  # z_bar = sg(z_p) + y_bar: the action loss never reaches the prior
         losses["mm"] = squared_norm(z_bar - z_p).mean()  # L_mm, section 4.1
-        return Latents(self.decode(s, z_bar), z, z_bar, z_p, [q.z_q, z_p], losses, q.indices, q.stats)
+        action = self.decode(s, z_bar)
+        if self.caps.parts and self.training:
+            losses["part"] = self.cross_part_change(s, z_p.detach(), q.z_q, action.detach())
+        return Latents(action, z, z_bar, z_p, [q.z_q, z_p], losses, q.indices, q.stats)
+
+    def cross_part_change(self, s: Tensor, z_p: Tensor, y_bar: Tensor, action: Tensor) -> Tensor:
+        """``L_part`` (``hybrid-parts``, not the paper's): for each part g, the margin's group g
+        replaced by the previous row's (another state's codes), ``||a' - sg(a)||^2`` over the actuators
+        of the *other* parts, summed over g, mean over rows: the decoder learns that a part's codes
+        leave the other parts' actuators alone."""
+        w = self.cfg.latent_dim // len(PART_NAMES)
+        group = torch.arange(self.cfg.latent_dim, device=s.device) // w
+        total = action.new_zeros(())
+        for g in range(len(PART_NAMES)):
+            mine = (group == g).to(y_bar.dtype)
+            swapped = self.decode(s, z_p + y_bar * (1 - mine) + y_bar.roll(1, 0) * mine)
+            others = ((self.action_parts != g) & (self.action_parts >= 0)).to(action.dtype)
+            total = total + squared_norm((swapped - action) * others).mean()
+        return total
 
     # ------------------------------------------------------------------ what task learning drives
     @torch.no_grad()
     def codes_to_latent(self, s: Tensor, indices: Tensor, num_codebooks: int | None = None) -> Tensor:
-        """``z_bar`` from code indices ``(B, M')`` of the first M codebooks (M' >= M columns;
-        -1 entries skip a codebook): ``z_p(s) + sum of the selected codes`` for the hybrids, the
-        sum of the codes for ``discrete+``, the code for ``discrete``."""
+        """``z_bar`` from code indices of the first M codebooks (at least :meth:`columns` ``(M)``
+        columns; -1 entries skip a codebook): ``z_p(s) + the decoded margin`` for the hybrids (the
+        sum of the selected codes; FSQ: the output projection of the chosen levels), the sum of
+        the codes for ``discrete+``, the code for ``discrete``."""
         if self.quantizer is None:
             raise UserError("the continuous prior has no codes: use offset_to_latent")
-        m = num_codebooks if num_codebooks is not None else min(indices.shape[-1], self.num_codebooks)
-        codes = self.quantizer.decode(indices[..., :m], m)
+        q = self.quantizer
+        m = num_codebooks if num_codebooks is not None else \
+            max(m for m in range(self.num_codebooks + 1) if q.columns(m) <= indices.shape[-1])
+        codes = q.decode(indices[..., :q.columns(m)], m)
         return codes + self.prior_latent(s)[0] if self.prior is not None else codes
 
     @torch.no_grad()
@@ -223,6 +291,7 @@ class LatentPrior(nn.Module):
         q = self.quantizer
         return {"kind": self.kind, "latent_dim": self.cfg.latent_dim, "has_prior": self.prior is not None,
                 "num_codebooks": self.num_codebooks, "codebook_size": q.codebook_size if q is not None else 0,
+                "quantizer": self.caps.quantizer if q is not None else None, "index_columns": self.columns(),
                 "posterior_hidden": list(self.cfg.posterior_hidden), "prior_hidden": list(self.cfg.prior_hidden),
                 "decoder_hidden": list(self.cfg.decoder_hidden)}
 
@@ -244,6 +313,9 @@ class LossConfig:
     commit: In[float, ">= 0"] = 1.0  # beta
     reg: In[float | None, ">= 0"] = None  # alpha; None: 0.005 for continuous, 0.05 for the others (the paper's)
     mm: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.1, 1.0))  # gamma (hybrids)
+    # hybrid-parts: weight of L_part, a part's codes must not move the other parts' actuators (beyond the
+    # paper); 10, the action term's: at 1 the short check measured no tie at all (docs/control/priors.md)
+    part: In[float, ">= 0"] = 10.0
     kl: WeightSchedule = field(default_factory=lambda: WeightSchedule(0.05, 0.5))  # continuous
 
 

@@ -53,17 +53,20 @@ def evaluate_policy(cfg: TaskTrainConfig, hum, lib, model: LatentPrior, scale: f
 
 
 def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
-    """One episode of a 1-environment ``mdp`` to a video, with the task's ``markers()``."""
+    """One episode of a 1-environment ``mdp`` to a video, with the task's ``markers()`` and, on
+    each frame, its ``caption()`` after the title."""
     from motok.sim.render import render_trajectory
 
     task = mdp.task
     obs, goal = mdp.reset()
-    qpos, marks = [mdp.env.qpos[0].copy()], []
+    qpos, marks, captions = [mdp.env.qpos[0].copy()], [], []
 
     def mark():
-        m = task.markers()
+        m, c = task.markers(), task.caption()
         if m is not None:
             marks.append(m[0])
+        if c is not None:
+            captions.append(f"{title}: {c[0]}")
 
     mark()
     while True:
@@ -72,7 +75,7 @@ def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
         mark()
         if term[0] or trunc[0]:
             break
-    path, backend = render_trajectory(mdp.env.hum, np.stack(qpos), out, mdp.env.control_hz, title=title,
+    path, backend = render_trajectory(mdp.env.hum, np.stack(qpos), out, mdp.env.control_hz, title=captions or title,
                                       markers=np.stack(marks) if marks else None, marker_radius=task.marker_radius)
     return f"{path} ({backend})"
 

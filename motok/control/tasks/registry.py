@@ -83,7 +83,7 @@ def __getattr__(attr: str):
 
 def make(name: str, cfgs, env, lib, rng):
     """The task ``name`` with its settings from ``cfgs`` (a :class:`TaskConfigs`)."""
-    return spec(name).task(getattr(cfgs, name), env, lib, rng)
+    return spec(name).task.build(getattr(cfgs, name), env, lib, rng, cfgs)
 
 
 def evaluate(name: str, mdp, act, episodes: int) -> dict:

@@ -76,7 +76,8 @@ def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
         if term[0] or trunc[0]:
             break
     path, backend = render_trajectory(mdp.env.hum, np.stack(qpos), out, mdp.env.control_hz, title=captions or title,
-                                      markers=np.stack(marks) if marks else None, marker_radius=task.marker_radius)
+                                      markers=np.stack(marks) if marks else None, marker_radius=task.marker_radius,
+                                      marker_rgba=task.marker_rgba)
     return f"{path} ({backend})"
 
 

@@ -38,7 +38,8 @@ class Task:
 
     goal_dim: int
     reward_key: str = "r_task"
-    marker_radius: float = 0.12  # m, the dots :meth:`markers` draws in videos
+    marker_radius: float = 0.12  # m, the dots :meth:`markers` draws in videos (one, or one per marker)
+    marker_rgba: tuple = (0.9, 0.2, 0.2, 0.8)  # their colour (one, or one per marker)
     # The task can start in an episode under way (:meth:`join`): its goal is drawn from the
     # character's current state. Tasks whose goal is a reference motion cannot: their reference
     # starts where their own start state was set.

@@ -93,6 +93,7 @@ class ComposeTask(NavigationTask):
     since then). ``cfg`` is navigation's settings, ``compose`` this task's."""
 
     marker_radius = np.array([NavigationTask.marker_radius, 0.06])  # m: the floor target, the hand target
+    marker_rgba = np.array([[0.9, 0.2, 0.2, 0.8], [0.1, 0.8, 0.2, 0.9]])  # the hand target green, told from the head
 
     def __init__(self, cfg: ComposeTaskConfig, env, lib, rng, nav: NavigationTaskConfig | None = None):
         super().__init__(nav if nav is not None else NavigationTaskConfig(), env, lib, rng)

@@ -200,6 +200,13 @@ class MultitaskTask(Task):
         return np.concatenate([np.broadcast_to(sub.marker_radius, sub.markers().shape[1:2]) for sub in self.subtasks
                                if sub.markers() is not None])
 
+    @property
+    def marker_rgba(self) -> np.ndarray:
+        """``(K, 4)``: each marker in its own sub-task's colour."""
+        return np.concatenate([np.broadcast_to(np.asarray(sub.marker_rgba, dtype=np.float64),
+                                               sub.markers().shape[1:2] + (4,))
+                               for sub in self.subtasks if sub.markers() is not None])
+
     def caption(self) -> list[str]:
         return [self.names[int(k)] for k in np.asarray(self.active)]
 

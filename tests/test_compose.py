@@ -22,9 +22,7 @@ from motok.control.tasks import registry
 from motok.control.tasks.compose import ComposeTask, ComposeTaskConfig, evaluate_compose, hand_goal, hand_reward
 from motok.control.tasks.navigation import NavigationTaskConfig
 from motok.errors import UserError
-from motok.sim.reference import load_library
-from task_helpers import place, rz, task_mdp
-from tiny_runs import tiny_prior_bundle
+from task_helpers import place, rz, task_mdp, tiny_prior_on_three_clips, tiny_task_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -102,15 +100,11 @@ def test_the_evaluation_counts_both_goals_and_keeps_every_episode_s_bodies(hum, 
 
 @pytest.fixture(scope="module")
 def tiny_prior(hum, small_dataset, tmp_path_factory):
-    lib = load_library(hum, small_dataset, clips=[0, 1, 2], cache_dir=tmp_path_factory.mktemp("compose-ref"))
-    return tiny_prior_bundle(tmp_path_factory.mktemp("compose-runs"), hum, lib, small_dataset)
+    return tiny_prior_on_three_clips(hum, small_dataset, tmp_path_factory, "compose")
 
 
 def test_compose_over_a_prior_trains_evaluates_with_motion_matching_and_renders(tiny_prior, tmp_path):
-    cfg = TaskTrainConfig(task="compose", iterations=2, save_every=2, eval_every=2, eval_episodes=2)
-    cfg.env.num_envs, cfg.env.nthread = 4, 1
-    cfg.net.policy = cfg.net.value = [16]
-    cfg.ppo = replace(cfg.ppo, horizon=8, minibatch_size=16, epochs=1)
+    cfg = tiny_task_config("compose")
     cfg.tasks.navigation = replace(cfg.tasks.navigation, episode_seconds=1.0, retarget_seconds=0.5)
     cfg.tasks.compose = replace(cfg.tasks.compose, target_seconds=0.5)
     train_from_prior(cfg, tiny_prior, tmp_path / "compose", codebooks=2)
@@ -125,3 +119,14 @@ def test_compose_over_a_prior_trains_evaluates_with_motion_matching_and_renders(
     r = CliRunner().invoke(app, ["control", "train", "--help"])
     assert "compose" in r.output and "multitask" in r.output
     assert {"compose", "multitask"} <= set(registry.names())
+
+
+def test_the_recipe_is_navigation_s_with_the_hand_goal():
+    from pathlib import Path
+
+    from motok.config import load_config
+    root = Path(__file__).resolve().parent.parent / "recipes" / "control"
+    comp, nav = (load_config(TaskTrainConfig, root / f"task_{n}.yaml") for n in ("compose", "navigation"))
+    assert comp.task == "compose" and comp.tasks.compose == ComposeTaskConfig()
+    assert comp.tasks.navigation == nav.tasks.navigation
+    assert (comp.env, comp.ppo, comp.net, comp.iterations) == (nav.env, nav.ppo, nav.net, nav.iterations)

@@ -5,6 +5,7 @@ toy hybrid prior trained, evaluated per sub-task and rendered with a switch."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from functools import partial
 
@@ -17,13 +18,12 @@ from motok.control.highlevel.train import train_from_prior
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks import registry
-from motok.control.tasks.multitask import MultitaskConfig, MultitaskTask, assignment, goal_layout
+from motok.control.tasks.multitask import MultitaskConfig, assignment, goal_layout
 from motok.control.tasks.navigation import NavigationTask
 from motok.control.tasks.steering import SteeringTask
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
-from motok.sim.reference import load_library
-from tiny_runs import tiny_prior_bundle
+from task_helpers import tiny_prior_on_three_clips, tiny_task_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -158,15 +158,11 @@ def test_a_switch_changes_the_one_hot_and_the_goal_at_its_step(hum, lib):
 
 @pytest.fixture(scope="module")
 def tiny_prior(hum, small_dataset, tmp_path_factory):
-    lib = load_library(hum, small_dataset, clips=[0, 1, 2], cache_dir=tmp_path_factory.mktemp("multi-ref"))
-    return tiny_prior_bundle(tmp_path_factory.mktemp("multi-runs"), hum, lib, small_dataset)
+    return tiny_prior_on_three_clips(hum, small_dataset, tmp_path_factory, "multi")
 
 
 def test_multitask_over_a_prior_trains_evaluates_each_task_and_renders_a_switch(tiny_prior, tmp_path):
-    cfg = TaskTrainConfig(task="multitask", iterations=2, save_every=2, eval_every=2, eval_episodes=2)
-    cfg.env.num_envs, cfg.env.nthread = 4, 1
-    cfg.net.policy = cfg.net.value = [16]
-    cfg.ppo = replace(cfg.ppo, horizon=8, minibatch_size=16, epochs=1)
+    cfg = tiny_task_config("multitask")
     t = cfg.tasks
     # no fall ends an episode: the video's length is the schedule's (the untrained policy falls)
     t.navigation = replace(t.navigation, episode_seconds=1.0, retarget_seconds=0.5, early_termination=False)
@@ -184,6 +180,19 @@ def test_multitask_over_a_prior_trains_evaluates_each_task_and_renders_a_switch(
         assert key in res, key
     assert res["navigation.episodes"] == res["inbetween.episodes"] == res["steering.episodes"] == 2
     assert res["switch.switched_share"] + res["switch.failed_after_share"] >= 0
+    # the command line evaluates it under another switching schedule (task settings only)
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+    r = CliRunner().invoke(app, ["-q", "control", "eval", "--task", "multitask", "--policy", str(tmp_path / "multi"),
+                                 "-n", "1", "--set", 'tasks.multitask.switch=["0.2s navigation"]', "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output)
+    assert out["switch.episodes"] == 1 and out["task"] == "multitask"
+    r = CliRunner().invoke(app, ["control", "eval", "--task", "multitask", "--policy", str(tmp_path / "multi"),
+                                 "--set", "ppo.lr=1"])
+    assert r.exit_code != 0 and "task settings only" in r.output
+
     import imageio.v3 as iio
 
     frames = iio.imread(tmp_path / "multi.mp4")
@@ -206,3 +215,18 @@ def test_markers_are_drawn_at_their_own_radius_and_not_at_all_when_not_finite(hu
                                    marker_radius=np.array([r, 5.0]))
         px[r] = green_pixels(iio.imread(out)[0])
     assert px[0.3] > 4 * px[0.1] > 0  # the area grows with the square of the radius; the NaN one is nowhere
+
+
+def test_the_recipe_is_the_four_task_recipes_at_their_total_samples():
+    from pathlib import Path
+
+    from motok.config import load_config
+    root = Path(__file__).resolve().parent.parent / "recipes" / "control"
+    multi = load_config(TaskTrainConfig, root / "task_multitask.yaml")
+    assert multi.task == "multitask" and multi.tasks.multitask.tasks == ["navigation", "inbetween", "hmd", "steering"]
+    for name in multi.tasks.multitask.tasks:
+        own = load_config(TaskTrainConfig, root / f"task_{name}.yaml")
+        assert getattr(multi.tasks, name) == getattr(own.tasks, name), name
+        assert multi.env == own.env and multi.ppo == own.ppo and multi.net == own.net
+        # a quarter of the environments over four times the iterations: each task's own samples
+        assert multi.iterations * multi.env.num_envs // 4 == own.iterations * own.env.num_envs

@@ -18,7 +18,7 @@ from motok.control.highlevel.train import train_from_prior
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks import registry
-from motok.control.tasks.multitask import MultitaskConfig, assignment, goal_layout
+from motok.control.tasks.multitask import MultitaskConfig, assignment, evaluate_switch, goal_layout
 from motok.control.tasks.navigation import NavigationTask
 from motok.control.tasks.steering import SteeringTask
 from motok.errors import UserError
@@ -152,6 +152,31 @@ def test_a_switch_changes_the_one_hot_and_the_goal_at_its_step(hum, lib):
     assert m.shape == (2, 1 + 10, 3) and np.isnan(m[nav_env, 0]).all() and np.isfinite(m[nav_env, 1:]).all()
     with pytest.raises(UserError, match="cannot switch to hmd"):
         multitask_mdp(hum, lib, 2, tasks=["navigation", "hmd"], switch=["1s hmd"])
+
+
+def test_the_switch_evaluation_counts_what_follows_the_switch(hum, lib):
+    """No fall ends an episode here: every episode is switched at 0.2 s and then plays steering's
+    whole 2 s; the rewards before and after are the per-step means of the task under way."""
+    mdp = multitask_mdp(hum, lib, 2, tasks=["navigation", "steering"], switch=["0.2s steering"])
+    seen = {"before": [], "after": []}  # both environments switch at the same step
+
+    def hold(obs, goal):
+        return np.zeros((len(obs), mdp.action_dim))
+
+    step = mdp.step
+
+    def watched(a):
+        out = step(a)
+        seen["after" if out[5]["switched"][0] else "before"].append(out[2]["r_task"])
+        return out
+
+    mdp.step = watched
+    res = evaluate_switch(mdp, hold, 2)
+    assert res["switched_share"] == 1.0 and res["failed_after_share"] == 0.0
+    assert res["seconds_after_mean"] == pytest.approx(2.0)
+    assert res["reward_before"] == pytest.approx(np.mean(seen["before"]))
+    assert res["reward_after"] == pytest.approx(np.mean(seen["after"]))
+    assert not mdp.task.switching  # switching is on only while the switch evaluation plays
 
 
 # ----------------------------------------------------------------------------- a tiny real chain

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from motok.arrays import copy, like, xp
+from motok.arrays import copy, is_tensor, like, xp
 from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.tasks import registry
 from motok.control.tasks.episodes import Act, Step, play_episodes
@@ -134,7 +134,7 @@ class MultitaskTask(Task):
         N, S = env.num_envs, lib.starts
         self.assigned = like(S, assignment(N, cfg.weights or [1.0] * len(self.names), rng))
         self.active, self.steps = copy(self.assigned), like(S, np.zeros(N, dtype=np.int64))
-        self.switched_at = np.zeros(N, dtype=np.int64)  # the step of the last switch (evaluations)
+        self.switched_at = np.zeros(N, dtype=np.int64)  # the step of the episode's last switch, 0: none (evaluations)
         self.switching = False  # evaluations and videos turn it on (for_evaluation, evaluate_switch)
         self.outcome: list[tuple] = []
 
@@ -144,12 +144,12 @@ class MultitaskTask(Task):
 
     def reset(self, ids, **where) -> None:
         """Each environment of ``ids`` back on its assigned sub-task, which resets it."""
-        ids = np.atleast_1d(np.asarray(ids.cpu() if hasattr(ids, "cpu") else ids, dtype=np.int64))
-        self.active[ids], self.steps[ids] = self.assigned[ids], 0
-        mine = np.asarray(self.assigned[ids].cpu() if hasattr(self.assigned, "cpu") else self.assigned[ids])
+        ids = np.atleast_1d(np.asarray(ids.cpu() if is_tensor(ids) else ids, dtype=np.int64))
+        self.active[ids], self.steps[ids], self.switched_at[ids] = self.assigned[ids], 0, 0
+        mine = np.asarray(self.assigned[ids].cpu() if is_tensor(self.assigned) else self.assigned[ids])
         for k, sub in enumerate(self.subtasks):
-            if (mine == k).any():
-                sub.reset(ids[mine == k], **where)
+            if (mine == k).any():  # the sub-task's ids as the environment takes them (host or device)
+                sub.reset(like(self.steps, ids[mine == k]) if is_tensor(self.steps) else ids[mine == k], **where)
 
     def goal(self):
         x = xp(self.env.bodies.pos)
@@ -167,7 +167,7 @@ class MultitaskTask(Task):
             on = self.active == k
             r = x.where(on, rew[self.subtasks[k].reward_key], r)
             term, trunc = x.where(on, te, term), x.where(on, tr, trunc)
-        info = {"task": copy(self.active), "episode_steps": copy(self.steps), "switched": self.active != self.assigned,
+        info = {"task": copy(self.active), "episode_steps": copy(self.steps), "switched": self.switched_at > 0,
                 "diverged": diverged, "invalid_action": invalid}
         if self.switching:
             going = ~(term | trunc)

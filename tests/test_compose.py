@@ -85,6 +85,22 @@ def test_hand_targets_change_every_target_seconds_inside_their_box(hum, lib):
     assert (seen <= np.array(task.compose.target_max) + 1e-12).all()
 
 
+def test_joining_mid_episode_draws_both_goals_from_where_the_character_is(hum, lib):
+    mdp = compose_mdp(hum, lib)
+    mdp.reset()
+    zero = np.zeros((2, mdp.action_dim))
+    for _ in range(3):
+        mdp.step(zero)
+    task = mdp.task
+    before = (task.offset.copy(), task.target.copy(), mdp.env.qpos.copy())
+    task.join([1])
+    assert np.array_equal(mdp.env.qpos, before[2])  # the character is not moved
+    assert task.steps.tolist() == [3, 0] and task.hand_steps.tolist() == [3, 0]
+    assert np.array_equal(task.offset[0], before[0][0]) and not np.allclose(task.offset[1], before[0][1])
+    d = np.hypot(*(task.target[1] - mdp.env.bodies.pos[1, 0, :2]))
+    assert 5.0 <= d <= 10.0  # a navigation target around the current root
+
+
 def test_the_evaluation_counts_both_goals_and_keeps_every_episode_s_bodies(hum, lib):
     mdp = compose_mdp(hum, lib, nav=NavigationTaskConfig(episode_seconds=1.0, early_termination=False),
                       target_seconds=0.5)

@@ -135,6 +135,11 @@ class ComposeTask(NavigationTask):
         super().reset(ids, clips, frames)
         self._new_hand_targets(ids)
 
+    def join(self, ids) -> None:
+        """Navigation's (a target around the current root), and a first hand target."""
+        super().join(ids)
+        self._new_hand_targets(like(self.steps, np.atleast_1d(np.asarray(ids, dtype=np.int64))))
+
     def hand_distance(self):
         """``(N,)`` m from the hand to its target."""
         b = self.env.bodies

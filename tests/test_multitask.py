@@ -19,6 +19,7 @@ from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks import registry
 from motok.control.tasks.multitask import MultitaskConfig, assignment, evaluate_switch, goal_layout
+from motok.control.tasks.inbetween import InbetweenTask
 from motok.control.tasks.navigation import NavigationTask
 from motok.control.tasks.steering import SteeringTask
 from motok.errors import UserError
@@ -98,33 +99,47 @@ def test_every_step_of_a_rollout_holds_every_task_and_resets_go_back_to_the_assi
     assert np.array_equal(mt.active, mt.assigned)  # restarted on their own tasks, two of each
 
 
+def same_episodes(single: TaskEnv, sub, ids) -> None:
+    """The single task's episodes of ``ids`` made the multitask sub-task's ``sub``: its targets,
+    commands, reference windows or head trajectories."""
+    task = single.task
+    if isinstance(task, NavigationTask):
+        task.set_targets(ids, sub.target)
+    elif isinstance(task, SteeringTask):
+        task.set_commands(ids, sub.heading, sub.speed)
+    elif isinstance(task, InbetweenTask):
+        task.reset(ids, clips=sub.clip, frames=sub.start, keyframes=sub.keyframes - sub.start[:, None])
+    else:
+        task.reset(ids, clips=sub.clip, frames=sub.start)
+
+
 def test_the_active_task_s_reward_is_the_single_task_s(hum, lib):
-    """Same states, targets and commands: each environment's multitask reward and episode end are
-    those of the single navigation or steering task on it."""
-    mdp = multitask_mdp(hum, lib, 2, tasks=["navigation", "steering"], switch=[])
+    """Same states and episodes (targets, commands, reference windows, head trajectories): each
+    environment's multitask reward and episode end are those of its task alone on it."""
+    mdp = multitask_mdp(hum, lib, 4, switch=[])
     mt = mdp.task
     mdp.reset()
     cfgs = configs()
     singles = []
-    for cls, cfg in ((NavigationTask, cfgs.navigation), (SteeringTask, cfgs.steering)):
-        env = HumanoidEnv(hum, SimConfig(num_envs=2, nthread=1))
-        single = TaskEnv(env, cls(cfg, env, lib, np.random.default_rng(5)), ACT)
+    for name, sub in zip(mt.names, mt.subtasks):
+        env = HumanoidEnv(hum, SimConfig(num_envs=4, nthread=1))
+        single = TaskEnv(env, type(sub)(getattr(cfgs, name), env, lib, np.random.default_rng(5)), ACT)
         single.reset()
-        env.set_state(np.arange(2), mdp.env.qpos.copy(), mdp.env.qvel.copy())
+        same_episodes(single, sub, np.arange(4))
+        env.set_state(np.arange(4), mdp.env.qpos.copy(), mdp.env.qvel.copy())
         singles.append(single)
-    nav, steer = mt.subtasks
-    singles[0].task.set_targets([0, 1], nav.target)
-    singles[1].task.set_commands([0, 1], steer.heading, steer.speed)
+    assert sorted(np.asarray(mt.active).tolist()) == [0, 1, 2, 3]
     rng = np.random.default_rng(1)
     for _ in range(5):
-        a = 0.05 * rng.standard_normal((2, mdp.action_dim))
+        a = 0.05 * rng.standard_normal((4, mdp.action_dim))
         _, _, r, term, trunc, _ = mdp.step(a)
         own = [s.step(a)[2:5] for s in singles]
-        for i in range(2):
+        for i in range(4):
             k = int(mt.active[i])
             assert r["r_task"][i] == pytest.approx(own[k][0]["r_task"][i], rel=1e-12)
             assert (term[i], trunc[i]) == (own[k][1][i], own[k][2][i])
-        assert r["r_task"][0] != pytest.approx(r["r_task"][1])  # two different tasks' rewards, not one
+            # and not another task's reward on the same state
+            assert all(r["r_task"][i] != pytest.approx(own[j][0]["r_task"][i]) for j in range(4) if j != k)
 
 
 def test_a_switch_changes_the_one_hot_and_the_goal_at_its_step(hum, lib):

@@ -49,3 +49,25 @@ def played_to_the_end(evaluate, make_mdp, tight: float, metrics, seconds: float,
         assert bad[f"{m}_mean"] == pytest.approx(ok[f"{m}_mean"], rel=1e-9)
     assert mdp.task.cfg.early_termination  # training still ends an episode at the failure
     return ok, bad, mdp
+
+
+def tiny_task_config(task: str):
+    """A 2-iteration policy of 16-unit networks on 4 environments, evaluated on 2 episodes at the end."""
+    from dataclasses import replace
+
+    from motok.control.highlevel.policy import TaskTrainConfig
+
+    cfg = TaskTrainConfig(task=task, iterations=2, save_every=2, eval_every=2, eval_episodes=2)
+    cfg.env.num_envs, cfg.env.nthread = 4, 1
+    cfg.net.policy = cfg.net.value = [16]
+    cfg.ppo = replace(cfg.ppo, horizon=8, minibatch_size=16, epochs=1)
+    return cfg
+
+
+def tiny_prior_on_three_clips(hum, data, tmp_path_factory, name: str):
+    """``tiny_prior_bundle`` on the first three clips of ``data``, in fresh folders named ``name``."""
+    from motok.sim.reference import load_library
+    from tiny_runs import tiny_prior_bundle
+
+    lib = load_library(hum, data, clips=[0, 1, 2], cache_dir=tmp_path_factory.mktemp(f"{name}-ref"))
+    return tiny_prior_bundle(tmp_path_factory.mktemp(f"{name}-runs"), hum, lib, data)

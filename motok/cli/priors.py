@@ -78,6 +78,9 @@ def eval_cmd(
     distance: Optional[float] = number_option(None, "--distance", help="Failure distance in m (default: the prior's).",
                                               within=f"{TRACKING}.termination_distance"),
     device: Optional[str] = Device,
+    task_sets: list[str] = typer.Option([], "--set", metavar="tasks.NAME.KEY=VALUE",
+                                        help="Task policies: evaluate under another task setting (repeatable), e.g. "
+                                        "--set 'tasks.multitask.switch=[\"4s steering\"]'."),
     as_json: bool = JsonOut,
 ):
     """A prior on imitation (success, MPJPE, G-MPJPE, root errors) or a task policy on its task."""
@@ -85,7 +88,9 @@ def eval_cmd(
         fail(f"--task must be one of {', '.join(EVAL_TASKS)}, not {task!r}")
     if task != registry.IMITATION:
         return _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json,
-                          valid_device(device))
+                          valid_device(device), task_sets)
+    if task_sets:
+        fail("--set changes a task policy's task settings (--policy); a prior's evaluation takes none")
     if prior is None:
         fail("--task imitation evaluates a prior: pass --prior PRIOR (a task policy: --task T --policy RUN)")
     from motok.control.priors.evaluate import evaluate_prior
@@ -101,13 +106,14 @@ def eval_cmd(
     report(res if as_json else summary, as_json, f"control eval {task} ({o['termination']} ends a clip)")
 
 
-def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json, device=None) -> None:
+def _eval_task(task, run_dir, prior, episodes, seed, data, clips, split, render, as_json, device=None,
+               sets=()) -> None:
     if run_dir is None or prior is not None:
         fail(f"--task {task} evaluates a trained task policy: pass --policy RUN (from `motok control train`), not --prior")
     from motok.control.highlevel.evaluate import evaluate_run
 
     res = run(evaluate_run, run_dir, episodes=episodes, seed=seed, data=data, clips=clips, split=split, render=render,
-              device=device, task=task)
+              device=device, task=task, sets=list(sets))
     if as_json:
         res.pop("provenance")
         report(res, True, "")

@@ -25,15 +25,16 @@ from motok.sim.kinematics import body_states
 SUFFIXES = (".mp4", ".gif")
 
 
-def _add_markers(scn, pos: np.ndarray, rgba: np.ndarray, radius: float) -> None:
-    """Spheres at world positions ``(K, 3)`` with colours ``(K, 4)``, as far as the scene has room."""
+def _add_markers(scn, pos: np.ndarray, rgba: np.ndarray, radius: np.ndarray) -> None:
+    """Spheres at world positions ``(K, 3)`` with colours ``(K, 4)`` and radii ``(K,)``, as far as
+    the scene has room; non-finite positions are not drawn."""
     import mujoco
 
     eye = np.eye(3).reshape(-1)
-    for p, c in zip(pos, rgba):
+    for p, c, r in zip(pos, rgba, radius):
         if scn.ngeom >= scn.maxgeom or not np.isfinite(p).all():
             continue
-        mujoco.mjv_initGeom(scn.geoms[scn.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, np.array([radius, 0, 0]),
+        mujoco.mjv_initGeom(scn.geoms[scn.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, np.array([r, 0, 0]),
                             np.asarray(p, dtype=np.float64), eye, np.asarray(c, dtype=np.float32))
         scn.ngeom += 1
 
@@ -106,16 +107,21 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
         renderer.close()
 
 
+def _radii(radius, pos: np.ndarray) -> np.ndarray:
+    """``(K,)`` marker radii (m) from one radius or one per marker of ``pos`` ``(T, K, 3)``."""
+    return np.broadcast_to(np.asarray(radius, dtype=np.float64), pos.shape[1:2])
+
+
 def trajectory_frames(hum: Humanoid, qpos: np.ndarray, *, size=(640, 480), ghost: np.ndarray | None = None,
                       title=None, markers: np.ndarray | None = None, marker_rgba=(0.9, 0.2, 0.2, 0.8),
-                      marker_radius: float = 0.08):
+                      marker_radius: float | np.ndarray = 0.08):
     """The MuJoCo frames ``(H, W, 3) uint8`` of :func:`render_trajectory`, one per row of ``qpos``,
     as an iterator (for composing videos: two runs side by side); raises where there is no GL."""
     mk = None
     if markers is not None:
         pos = np.asarray(markers, dtype=np.float64)
         mk = (pos, np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,)),
-              float(marker_radius))
+              _radii(marker_radius, pos))
     return _frames_mujoco(hum, qpos, tuple(int(s) + int(s) % 2 for s in size), ghost, title, mk)
 
 
@@ -136,11 +142,13 @@ def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
 def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title=None,
                       ghost: np.ndarray | None = None, size=(640, 480), backend: str = "auto",
                       markers: np.ndarray | None = None, marker_rgba=(0.9, 0.2, 0.2, 0.8),
-                      marker_radius: float = 0.08) -> tuple[Path, str]:
+                      marker_radius: float | np.ndarray = 0.08) -> tuple[Path, str]:
     """Render ``qpos (T, nq)`` to ``out`` (.mp4 or .gif); returns the path and the backend used
     (``mujoco`` or ``stick``). ``backend="stick"`` forces the fallback. ``markers`` ``(T, K, 3)``
     are world points drawn as spheres (a task's targets, keyframe joints, a head target), coloured
-    by ``marker_rgba``: one colour, ``(K, 4)`` or ``(T, K, 4)``; the stick figure leaves them out.
+    by ``marker_rgba``: one colour, ``(K, 4)`` or ``(T, K, 4)``, of ``marker_radius`` (m, one or
+    ``(K,)``); non-finite points are not drawn (markers of a goal not in use); the stick figure
+    leaves them out.
     ``title``: one for the whole video, or one per frame (a closed loop's prompt of each moment;
     the stick figure draws the first)."""
     out = Path(out)
@@ -154,7 +162,7 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
         if pos.ndim != 3 or pos.shape[-1] != 3:
             raise UserError(f"markers must have shape (T, K, 3), not {pos.shape}")
         rgba = np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,))
-        mk = (pos, rgba, float(marker_radius))
+        mk = (pos, rgba, _radii(marker_radius, pos))
     mujoco = backend in ("auto", "mujoco")
     frames = _mujoco_frames(hum, qpos, size, ghost, title, mk, required=backend == "mujoco") if mujoco else None
     if frames is None:  # asked for, or MuJoCo cannot draw here: the stick figure of the body positions

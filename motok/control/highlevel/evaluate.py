@@ -12,6 +12,7 @@ import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
 from motok.atomic import write_json
+from motok.config import load_config, to_dict
 from motok.control import runs
 from motok.control.highlevel.policy import TaskTrainConfig, load_task_run, task_mdp
 from motok.control.mdp.task_env import TaskEnv
@@ -53,17 +54,20 @@ def evaluate_policy(cfg: TaskTrainConfig, hum, lib, model: LatentPrior, scale: f
 
 
 def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
-    """One episode of a 1-environment ``mdp`` to a video, with the task's ``markers()``."""
+    """One episode of a 1-environment ``mdp`` to a video, with the task's ``markers()`` and, on
+    each frame, its ``caption()`` after the title."""
     from motok.sim.render import render_trajectory
 
     task = mdp.task
     obs, goal = mdp.reset()
-    qpos, marks = [mdp.env.qpos[0].copy()], []
+    qpos, marks, captions = [mdp.env.qpos[0].copy()], [], []
 
     def mark():
-        m = task.markers()
+        m, c = task.markers(), task.caption()
         if m is not None:
             marks.append(m[0])
+        if c is not None:
+            captions.append(f"{title}: {c[0]}")
 
     mark()
     while True:
@@ -72,23 +76,40 @@ def render_episode(mdp: TaskEnv, act, out, title: str) -> str:
         mark()
         if term[0] or trunc[0]:
             break
-    path, backend = render_trajectory(mdp.env.hum, np.stack(qpos), out, mdp.env.control_hz, title=title,
-                                      markers=np.stack(marks) if marks else None, marker_radius=task.marker_radius)
+    path, backend = render_trajectory(mdp.env.hum, np.stack(qpos), out, mdp.env.control_hz, title=captions or title,
+                                      markers=np.stack(marks) if marks else None, marker_radius=task.marker_radius,
+                                      marker_rgba=task.marker_rgba)
     return f"{path} ({backend})"
+
+
+def with_task_settings(cfg: TaskTrainConfig, sets: list[str]) -> TaskTrainConfig:
+    """``cfg`` with ``tasks.NAME.KEY=VALUE`` overrides (``--set``): an evaluation under other task
+    settings than the training's (a switching schedule, more keyframes). Only ``tasks.*``: the
+    network, the physics and the prior are the run's."""
+    bad = [s for s in sets if not s.strip().startswith("tasks.")]
+    if bad:
+        raise UserError(f"--set on an evaluation changes task settings only (tasks.NAME.KEY=VALUE), not {bad}")
+    if not sets:
+        return cfg
+    return load_config(TaskTrainConfig, overrides=sets, base=to_dict(cfg))
 
 
 @checked(episodes=">= 1", seed=">= 0")
 def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: str | None = None,
-                 split: str | None = None, render=None, device: str | None = None, task: str | None = None) -> dict:
+                 split: str | None = None, render=None, device: str | None = None, task: str | None = None,
+                 sets: list[str] | None = None) -> dict:
     """``motok control eval --task T --policy RUN``: the task's evaluation of the policy in ``run``
     on ``episodes`` episodes (start states from its clips, or those of ``data`` / ``clips`` /
     ``split``), written to ``RUN/eval_TASK[_SPLIT].json`` with the checkpoint and provenance.
-    ``task``, when given, must be the run's (checked before any work)."""
+    ``task``, when given, must be the run's (checked before any work); ``sets``: ``tasks.*``
+    overrides of the run's task settings (:func:`with_task_settings`)."""
     run = Path(run)
-    res, src = evaluate_loaded(run, load_task_run(run), episodes=episodes, seed=seed, data=data, clips=clips,
+    loaded = load_task_run(run)
+    loaded = (with_task_settings(loaded[0], sets or []), *loaded[1:])
+    res, src = evaluate_loaded(run, loaded, episodes=episodes, seed=seed, data=data, clips=clips,
                                split=split, render=render, device=device, task=task)
     prov = Provenance(command=command_line(), config={"run": str(run), "episodes": episodes, "seed": seed,
-                                                        "clips": clips, "split": split},
+                                                        "clips": clips, "split": split, "sets": sets or []},
                       inputs=hash_inputs([src]))
     res["provenance"] = json.loads(prov.to_json())
     path = run / (f"eval_{res['task']}" + (f"_{split}" if split else "") + ".json")

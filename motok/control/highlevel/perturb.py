@@ -275,7 +275,7 @@ def perturb_run(run, *, episodes: int = 64, seed: int = 0, render=None, cfg: Per
         path, backend = render_trajectory(balls, np.stack([q for q, _ in frames]), render, mdp.env.control_hz,
                                           title=f"{tcfg.task}, balls every {cfg.period:g} s",
                                           markers=np.stack(marks) if marks[0] is not None else None,
-                                          marker_radius=mdp.task.marker_radius)
+                                          marker_radius=mdp.task.marker_radius, marker_rgba=mdp.task.marker_rgba)
         res["video"] = f"{path} ({backend})"
     res["provenance"] = json.loads(Provenance(command=command_line(), config={"run": str(run), "episodes": episodes,
                                                                              "seed": seed}).to_json())

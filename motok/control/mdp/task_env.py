@@ -8,9 +8,11 @@ A task (:class:`Task`, the base of the tasks in ``motok.control.tasks``) has
 * ``update(diverged, invalid) -> (rewards, terminated, truncated, info)`` after a physics step,
   ``rewards`` a dict of ``(N,)`` terms that holds ``reward_key``;
 
-and, where it differs from the base's, what generic code asks of it: ``markers()`` for videos,
-``step_limit()`` for tests that need an episode's length, ``for_evaluation()`` for a video of
-the episodes its evaluation plays.
+and, where it differs from the base's, what generic code asks of it: ``markers()`` and
+``caption()`` for videos, ``step_limit()`` for tests that need an episode's length,
+``for_evaluation()`` for a video of the episodes its evaluation plays, ``build()`` for a task
+made of other tasks (it reads their settings), ``join()`` for a task that can take over an episode
+in progress (a switch of task mid-episode).
 
 There is no auto-reset: the caller reads the final observation (for bootstrapping truncated
 episodes) and then calls ``reset(ids)`` for the finished environments.
@@ -36,7 +38,18 @@ class Task:
 
     goal_dim: int
     reward_key: str = "r_task"
-    marker_radius: float = 0.12  # m, the dots :meth:`markers` draws in videos
+    marker_radius: float = 0.12  # m, the dots :meth:`markers` draws in videos (one, or one per marker)
+    marker_rgba: tuple = (0.9, 0.2, 0.2, 0.8)  # their colour (one, or one per marker)
+    # The task can start in an episode under way (:meth:`join`): its goal is drawn from the
+    # character's current state. Tasks whose goal is a reference motion cannot: their reference
+    # starts where their own start state was set.
+    joins_mid_episode: bool = False
+
+    @classmethod
+    def build(cls, cfg, env, lib, rng, cfgs=None) -> "Task":
+        """The task with its settings ``cfg``; ``cfgs`` holds every task's settings (a
+        ``TaskConfigs``), which a task made of other tasks reads theirs from."""
+        return cls(cfg, env, lib, rng)
 
     def reset(self, ids: np.ndarray, **where) -> None:  # pragma: no cover - every task defines it
         raise NotImplementedError
@@ -50,6 +63,15 @@ class Task:
     def markers(self) -> np.ndarray | None:
         """``(N, K, 3)`` world points a video draws (targets, keyframes, a head); None: nothing."""
         return None
+
+    def caption(self) -> list[str] | None:
+        """Per environment, a word a video writes on each frame (the task under way); None: nothing."""
+        return None
+
+    def join(self, ids) -> None:
+        """Take over environments ``ids`` in an episode under way without moving the character:
+        a new goal from its current state, the task's episode clock restarted."""
+        raise NotImplementedError(f"{type(self).__name__} cannot start in an episode under way")
 
     def step_limit(self):
         """Each environment's episode length in control steps (``(N,)`` or one number)."""

@@ -100,6 +100,7 @@ class NavigationTask(Task):
     goal_dim = 2
     reward_key = "r_task"
     marker_radius = 0.25  # m, in videos: a target seen from the distance that frames it with the character
+    joins_mid_episode = True  # a target is drawn around wherever the root is
 
     def __init__(self, cfg: NavigationTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
@@ -152,6 +153,13 @@ class NavigationTask(Task):
             c, f = like(L.starts, c), like(L.starts, f)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.frame[ids], self.steps[ids], self.target_index[ids] = c, f, 0, 0
+        self._new_targets(ids)
+        self._refresh_goal(ids)
+
+    def join(self, ids) -> None:
+        """A first target around the current root of ``ids``, their episode clock restarted."""
+        ids = like(self.steps, np.atleast_1d(np.asarray(ids, dtype=np.int64)))
+        self.steps[ids], self.target_index[ids] = 0, 0
         self._new_targets(ids)
         self._refresh_goal(ids)
 

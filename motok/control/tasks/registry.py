@@ -36,7 +36,7 @@ class TaskSpec:
 
     name: str  # the task's name: --task NAME, tasks.NAME in a recipe, the file's name
     config: type  # its settings, a dataclass (the recipe's tasks.NAME section)
-    task: type  # its Task class, built as task(config, env, library, rng)
+    task: type  # its Task class, built by its build(config, env, library, rng, every task's config)
     evaluate: Callable  # evaluate(mdp, act, episodes) -> dict: the task's metrics over whole episodes
     report: Callable = _as_is  # report(result, data, library) -> result: what a full evaluation adds from the dataset
     # The active codebooks M the paper learns the task with over a residual prior (Tables 6-8), the
@@ -83,7 +83,7 @@ def __getattr__(attr: str):
 
 def make(name: str, cfgs, env, lib, rng):
     """The task ``name`` with its settings from ``cfgs`` (a :class:`TaskConfigs`)."""
-    return spec(name).task(getattr(cfgs, name), env, lib, rng)
+    return spec(name).task.build(getattr(cfgs, name), env, lib, rng, cfgs)
 
 
 def evaluate(name: str, mdp, act, episodes: int) -> dict:

@@ -116,6 +116,7 @@ class SteeringTask(Task):
     goal_dim = 3
     reward_key = "r_task"
     marker_radius = 0.04  # m: the arrow's dots
+    joins_mid_episode = True  # a command needs no start state
 
     def __init__(self, cfg: SteeringTaskConfig, env: HumanoidEnv, lib: ReferenceLibrary, rng):
         self.cfg, self.env, self.lib, self.rng = cfg, env, lib, rng
@@ -165,6 +166,13 @@ class SteeringTask(Task):
             c = like(L.starts, [L.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))])
             f = like(L.starts, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)))
         self.env.set_state(ids, *reference_state(L, c, f))
+        self.steps[ids] = 0
+        self._new_commands(ids)
+        self._refresh_goal()
+
+    def join(self, ids) -> None:
+        """A first command to ``ids``, their episode clock restarted."""
+        ids = like(self.steps, np.atleast_1d(np.asarray(ids, dtype=np.int64)))
         self.steps[ids] = 0
         self._new_commands(ids)
         self._refresh_goal()

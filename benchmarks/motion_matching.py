@@ -97,9 +97,10 @@ def main() -> None:
             d, i = search_index(index, keys, (raw - mean) / std)
             filtered = (d > thr).sum() if a == 0 else filtered + (d > thr).sum()
         big_s = time.perf_counter() - t0
+        exact_min = args.queries * exact_s / len(q) / 60
         print(f"\nscale: {args.queries:,} noisy held-out transitions through the index in {big_s:.1f} s "
               f"({args.queries / big_s:,.0f} transitions/s; {filtered / args.queries:.1%} filtered); with the "
-              f"index build, {big_s + build_s:.1f} s; exact at the rate above: {args.queries * exact_s / len(q) / 60:.1f} min")
+              f"index build, {big_s + build_s:.1f} s; exact at the rate above: {exact_min:.1f} min")
 
 
 if __name__ == "__main__":

@@ -204,6 +204,18 @@ def test_eval_motion_matching_command(small_dataset, tmp_path):
     assert row["coverage_n"] == row["transitions"] and row["coverage_equal_n"] == row["coverage"]
     r = CliRunner().invoke(app, [*args, "--threshold", "1.5"])
     assert r.exit_code == 0 and "threshold 1.500" in r.stdout, r.output
+    # the held-out split as one more row, searched exactly: the slice has 3 test clips
+    held = ["--quiet", "eval", "motion-matching", "-d", str(small_dataset), "--motions", str(gen), "--split", "train",
+            "--threshold", "20", "--exact", "--json"]
+    r = CliRunner().invoke(app, [*held, "--heldout", "test"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.stdout)
+    gen_row, test_row = rep["rows"]
+    assert test_row["motion"] == "test split (held out)" and test_row["clips"] == 3 and "fell" not in test_row
+    assert rep["search"] == {"search": "exact (torch blocks)"} and "coverage_equal_n" not in test_row
+    assert gen_row["coverage_n"] == gen_row["transitions"]  # the held-out row sets no common size
+    r = CliRunner().invoke(app, [*held, "--heldout", "train"])
+    assert r.exit_code != 0 and "--heldout train" in r.output and "part of the reference" in r.output
 
 
 def test_falls_are_counted_apart_from_the_generation_labels(small_dataset, tmp_path):

@@ -106,7 +106,8 @@ def falls(path) -> dict:
     from motok.data.dataset import MotionFile
 
     with MotionFile(path) as mf:
-        labels = [json.loads(s or "{}") for s in read_strings(mf.h5["clips"]["labels"])]
+        c = mf.h5["clips"]
+        labels = [json.loads(s or "{}") for s in read_strings(c["labels"])] if "labels" in c else []
     if not any("fell_at_s" in x for x in labels):
         return {}
     fell = sum(x.get("fell_at_s") is not None for x in labels)
@@ -248,12 +249,12 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
         skeleton, fps = mf.skeleton, mf.fps
     gens = [(load_set(p, fps=fps, skeleton=skeleton), str(p), falls(p)) for p in motions]  # a wrong file fails now
     if held is not None:
-        gens.append((load_set(data, held), f"{data} ({heldout} split, held out)", {}))
+        gens.append((load_set(data, held), f"{heldout} split (held out)", {}))
     with make_progress("transitions") as bar:
         ref = reference(data, names, threshold=threshold, percentile=percentile, queries=queries, seed=seed,
                         exact=exact, bar=bar)
         ds = ref.dataset
-        out = {"kind": KIND, "schema_version": 1, "data": str(data), "clips": clips, "split": split,
+        out = {"kind": KIND, "schema_version": 2, "data": str(data), "clips": clips, "split": split,
                "heldout": heldout,
                "state": "(s_t, s_{t+1}); s = root height, root-relative joints in the heading frame, root velocity "
                         "in the heading frame, yaw rate (backward differences); each dimension normalised by the "
@@ -269,6 +270,8 @@ def motion_matching(data, motions, *, clips: str | None = None, split: str | Non
             row, i = _row(ref, g, label, bar)
             rows.append({**row, **fell})
             found.append(i)
+    if held is not None:  # data, not generation: it sets no common size for the generated rows
+        found = found[:-1]
     n, cov = equal_size_coverage(found, len(ref.x), seed)
     for row, c in zip(rows, cov):
         row["coverage_equal_n"], row["coverage_n"] = c, n
@@ -314,7 +317,7 @@ def markdown(rep: dict) -> str:
     for r in rep["rows"]:
         lines.append(f"| {r['motion']} | " + " | ".join(cells(r)) + " |")
     lines.append(f"| dataset ({rep['data']}) | " + " | ".join(cells(rep["dataset"])) + " |")
-    t, n = rep["threshold"], rep["rows"][0]["coverage_n"] if rep["rows"] else 0
+    t, n = rep["threshold"], rep["rows"][0].get("coverage_n", 0) if rep["rows"] else 0
     return "\n".join(lines) + (f"\n\nThreshold {t['value']:.3f}: {t['definition']}. Distance: mean and std "
                                 f"of the valid transitions. Coverage at equal n: {n} transitions of each row, "
                                 f"drawn at random. Search: {rep['search']['search']}.\n")

@@ -46,7 +46,8 @@
 # the priors the `priors` stage distils, TABLE1=0 leaves their Table 1 generations to `prioreval`;
 # R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
-# GEN_N=1336 samples of GEN_SECONDS=30 s per Table 1 row (599 transitions each at 20 fps: the paper's 800,000), EVAL_N=256 task episodes, BALLS_N=64
+# GEN_N=1336 samples of GEN_SECONDS=30 s per Table 1 row (599 transitions each at 20 fps: the paper's 800,000;
+# about 5 min of simulation per row, docs/eval.md), EVAL_N=256 task episodes, BALLS_N=64
 # thrown-ball episodes; KIN_IT (unset: the recipes') iterations of the evaluator, tokenizer and GPT
 # of t2p, and T2M_RECIPE=recipes/eval/t2m.yaml its protocol (small values make a dry run of the whole
 # queue at toy size). PRIOR_IT is half the

@@ -51,7 +51,8 @@
 # its exploration std and learning rate);
 # R=runs, MOTOK=.venv/bin/motok, NICE=5, EXPERT_IT=13000 (--until: the recipe's
 # 40k-iteration LR schedule), PRIOR_IT=1500 and TASK_IT=3000 (--set iterations); the evaluation sizes
-# GEN_N=64 samples of GEN_SECONDS=30 s per Table 1 row, EVAL_N=256 task episodes, BALLS_N=64
+# GEN_N=1336 samples of GEN_SECONDS=30 s per Table 1 row (599 transitions each at 20 fps: the paper's 800,000;
+# about 5 min of simulation per row, docs/eval.md), EVAL_N=256 task episodes, BALLS_N=64
 # thrown-ball episodes; KIN_IT (unset: the recipes') iterations of the evaluator, tokenizer and GPT
 # of t2p, and T2M_RECIPE=recipes/eval/t2m.yaml its protocol (small values make a dry run of the whole
 # queue at toy size). PRIOR_IT is half the
@@ -76,7 +77,7 @@ NICE=${NICE:-5}
 EXPERT_IT=${EXPERT_IT:-13000}
 PRIOR_IT=${PRIOR_IT:-1500}
 TASK_IT=${TASK_IT:-3000}
-GEN_N=${GEN_N:-64}
+GEN_N=${GEN_N:-1336}
 GEN_SECONDS=${GEN_SECONDS:-30}
 EVAL_N=${EVAL_N:-256}
 BALLS_N=${BALLS_N:-64}
@@ -223,7 +224,7 @@ stage_prioreval() {
         while read -r m tag; do gens+=(--motions "$R/table1/$tag.h5"); done < <(table1_rows "$k")
     done
     [ ${#gens[@]} -gt 0 ] && once "$R/table1/table1.json" motion_matching "${M[@]}" eval motion-matching \
-        -d "$DATA" --split train "${gens[@]}" -o "$R/table1/table1.json" -o "$R/table1/table1.md"
+        -d "$DATA" --split train --heldout test "${gens[@]}" -o "$R/table1/table1.json" -o "$R/table1/table1.md"
     return 0
 }
 

@@ -99,10 +99,14 @@ def table1(R: Path) -> str:
     rep = load(R / "table1" / "table1.json")
     if rep is None:
         return ""
-    rows = [[Path(r["motion"]).stem, r["transitions"], f"{r['distance_mean']:.3f}", pct(r["filtered_rate"]),
-             pct(r["coverage"]), pct(r["coverage_within_threshold"]), pct(r.get("coverage_equal_n")),
-             f"{r['jitter_m_s3']:.1f}",
-             falls(R / "table1" / Path(r["motion"]).name)] for r in rep["rows"]]
+    # distance: Eq. 8 over the valid transitions, with its std where the report has it (Tables 1 and 4:
+    # mean +- std); falls: the report's own count, else (older reports) the generation's labels
+    rows = [[Path(r["motion"]).stem, r["transitions"],
+             f"{r['distance_mean']:.3f}" + (f" ± {r['distance_std']:.3f}" if r.get("distance_std") is not None else ""),
+             pct(r["filtered_rate"]), pct(r["coverage"]), pct(r["coverage_within_threshold"]),
+             pct(r.get("coverage_equal_n")), f"{r['jitter_m_s3']:.1f}",
+             f"{r['fell']} / {r['episodes']}" if "fell" in r else falls(R / "table1" / Path(r["motion"]).name)]
+            for r in rep["rows"]]
     d = rep["dataset"]
     rows.append(["dataset", d["transitions"], "", "", "", "", "", f"{d['jitter_m_s3']:.1f}", ""])
     n = rep["rows"][0].get("coverage_n") if rep["rows"] else None

@@ -199,3 +199,32 @@ def test_capped_kernels_are_recorded_and_named_as_other_arithmetic():
                                    ("numpy_simd", bool(here["numpy_simd"])), ("env", True),
                                    ("torch_threads", here["torch_threads"] != capped["torch_threads"])) if moved]
     assert [c.split(":")[0] for c in arithmetic_differences(here, capped)] == expected
+
+
+def test_a_motion_written_in_batches_equals_one_written_at_once(small_dataset, tmp_path):
+    """`MotionWriter` (what `control generate` streams its episodes through) writes the same file
+    as `write_motion` whatever the batches, and a failure midway leaves no file."""
+    from motok.data.dataset import MotionFile, MotionWriter, write_motion
+
+    with MotionFile(small_dataset) as mf:
+        clips = [mf.clip(i) for i in range(len(mf))]
+        sk, offsets, fps, legacy = mf.skeleton, mf.offsets, mf.fps, mf.legacy
+    prov = Provenance(command="test", config={})
+    write_motion(tmp_path / "once.h5", "motion", prov, clips, sk, offsets, fps, legacy)
+    with MotionWriter(tmp_path / "batches.h5", "motion", prov, sk, offsets, fps, legacy) as w:
+        for a, b in ((0, 1), (1, 10), (10, 10), (10, len(clips))):  # one clip, many, none, the rest
+            w.add(clips[a:b])
+    with MotionFile(tmp_path / "once.h5") as one, MotionFile(tmp_path / "batches.h5") as bat:
+        assert bat.names == one.names and np.array_equal(bat.frame_offsets, one.frame_offsets)
+        for key in ("features", "joints", "local_quats", "root_translation"):
+            assert np.array_equal(bat.h5["frames"][key][()], one.h5["frames"][key][()])
+        assert [bat.clip(i).labels for i in range(len(bat))] == [c.labels for c in clips]
+        assert [bat.clip(i).captions for i in range(len(bat))] == [one.clip(i).captions for i in range(len(one))]
+    with pytest.raises(RuntimeError), MotionWriter(tmp_path / "half.h5", "motion", prov, sk, offsets, fps,
+                                                   legacy) as w:
+        w.add(clips[:3])
+        raise RuntimeError("the simulation broke")
+    with pytest.raises(ValueError, match="no clips"), MotionWriter(tmp_path / "empty.h5", "motion", prov, sk,
+                                                                   offsets, fps, legacy):
+        pass
+    assert not (tmp_path / "half.h5").exists() and not (tmp_path / "empty.h5").exists()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -45,31 +45,81 @@ class Clip:
         return len(self.features)
 
 
+FRAME_KEYS = ("features", "joints", "local_quats", "root_translation")
+FRAME_CHUNK = 4096  # rows per HDF5 chunk of a frames dataset: whole-clip reads touch few chunks
+
+
 def write_motion(path, kind: str, provenance: Provenance, clips: list[Clip], skeleton: Skeleton,
                  offsets: np.ndarray, fps: float, legacy: bool, stats: tuple | None = None) -> Path:
     """Write clips in the packed layout; atomic (see :func:`motok.artifacts.write_artifact`)."""
     if not clips:
         raise ValueError(f"{path}: refusing to write a {kind} artifact with no clips")
-    lengths = np.array([c.num_frames for c in clips], dtype=np.int64)
-    offsets_index = np.concatenate([[0], np.cumsum(lengths)])
-    with write_artifact(path, kind, provenance) as f:
-        f.attrs["fps"] = float(fps)
-        f.attrs["legacy"] = bool(legacy)
-        f.attrs["feature_dim"] = int(clips[0].features.shape[1])
-        f.attrs["num_joints"] = int(skeleton.num_joints)
-        sk = f.create_group("skeleton")
-        sk.attrs["definition"] = json.dumps(skeleton.to_dict())
-        write_strings(sk, "names", skeleton.joints)
-        sk.create_dataset("parents", data=skeleton.parents)
-        sk.create_dataset("offsets", data=np.asarray(offsets, dtype=np.float32))
+    with MotionWriter(path, kind, provenance, skeleton, offsets, fps, legacy, stats) as w:
+        w.add(clips)
+    return Path(path)
 
+
+class MotionWriter:
+    """A motion artifact written a batch of clips at a time (:meth:`add`), for motion too large
+    to hold at once (Table 1's 800,000 generated frames per row): frames go to the file as they
+    come and only each clip's name, labels and captions are kept until the end. The file appears
+    only if the ``with`` block ends without an error, as with :func:`write_motion`."""
+
+    def __init__(self, path, kind: str, provenance: Provenance, skeleton: Skeleton, offsets: np.ndarray,
+                 fps: float, legacy: bool, stats: tuple | None = None):
+        self.path, self.kind, self.provenance = path, kind, provenance
+        self.skeleton, self.offsets, self.fps, self.legacy, self.stats = skeleton, offsets, fps, legacy, stats
+        self.clips: list[Clip] = []  # frameless copies: the frames are already in the file
+        self.frames = 0
+
+    def __enter__(self):
+        self._cm = write_artifact(self.path, self.kind, self.provenance)
+        f = self.f = self._cm.__enter__()
+        f.attrs["fps"] = float(self.fps)
+        f.attrs["legacy"] = bool(self.legacy)
+        f.attrs["num_joints"] = int(self.skeleton.num_joints)
+        sk = f.create_group("skeleton")
+        sk.attrs["definition"] = json.dumps(self.skeleton.to_dict())
+        write_strings(sk, "names", self.skeleton.joints)
+        sk.create_dataset("parents", data=self.skeleton.parents)
+        sk.create_dataset("offsets", data=np.asarray(self.offsets, dtype=np.float32))
+        self.fr = f.create_group("frames")
+        return self
+
+    def add(self, clips: list[Clip]) -> None:
+        """Append ``clips``' frames to the file."""
+        if not clips:
+            return
+        n = sum(c.num_frames for c in clips)
+        for key in FRAME_KEYS:
+            rows = np.concatenate([getattr(c, key) for c in clips]).astype(np.float32)
+            if key not in self.fr:
+                self.fr.create_dataset(key, data=rows, maxshape=(None,) + rows.shape[1:],
+                                       chunks=(FRAME_CHUNK,) + rows.shape[1:])
+            else:
+                ds = self.fr[key]
+                ds.resize(self.frames + n, axis=0)
+                ds[self.frames:] = rows
+        if "feature_dim" not in self.f.attrs:
+            self.f.attrs["feature_dim"] = int(clips[0].features.shape[1])
+        self.frames += n
+        empty = np.zeros((0,))
+        self.clips += [replace(c, features=np.zeros((c.num_frames, 0)), joints=empty, local_quats=empty,
+                               root_translation=empty) for c in clips]
+
+    def _finish(self) -> None:
+        """The clip index, captions and statistics, written once every frame is in."""
+        clips, f = self.clips, self.f
+        if not clips:
+            raise ValueError(f"{self.path}: refusing to write a {self.kind} artifact with no clips")
         c = f.create_group("clips")
         write_strings(c, "name", [x.name for x in clips])
         write_strings(c, "source", [x.source for x in clips])
         c.create_dataset("source_fps", data=np.array([x.source_fps for x in clips], dtype=np.float64))
         write_strings(c, "split", [x.split for x in clips])
         write_strings(c, "labels", [json.dumps(x.labels, sort_keys=True) for x in clips])
-        c.create_dataset("offset", data=offsets_index)
+        lengths = np.array([x.num_frames for x in clips], dtype=np.int64)
+        c.create_dataset("offset", data=np.concatenate([[0], np.cumsum(lengths)]))
 
         caps = [(i, *cap) for i, x in enumerate(clips) for cap in x.captions]
         g = f.create_group("captions")
@@ -78,16 +128,20 @@ def write_motion(path, kind: str, provenance: Provenance, clips: list[Clip], ske
         write_strings(g, "tokens", [r[2] for r in caps])
         g.create_dataset("start", data=np.array([r[3] for r in caps], dtype=np.float64))
         g.create_dataset("end", data=np.array([r[4] for r in caps], dtype=np.float64))
-
-        fr = f.create_group("frames")
-        for key in ("features", "joints", "local_quats", "root_translation"):
-            fr.create_dataset(key, data=np.concatenate([getattr(x, key) for x in clips]).astype(np.float32))
-        if stats is not None:
+        if self.stats is not None:
             st = f.create_group("stats")
-            st.attrs["split"] = stats[2]
-            st.create_dataset("mean", data=np.asarray(stats[0], dtype=np.float32))
-            st.create_dataset("std", data=np.asarray(stats[1], dtype=np.float32))
-    return Path(path)
+            st.attrs["split"] = self.stats[2]
+            st.create_dataset("mean", data=np.asarray(self.stats[0], dtype=np.float32))
+            st.create_dataset("std", data=np.asarray(self.stats[1], dtype=np.float32))
+
+    def __exit__(self, et, ev, tb):
+        if et is None:
+            try:
+                self._finish()
+            except BaseException as e:  # the half-written file must not appear
+                self._cm.__exit__(type(e), e, e.__traceback__)
+                raise
+        return self._cm.__exit__(et, ev, tb)
 
 
 def clip_index(names: list[str], clip, positions: dict[str, int] | None = None, where: str = "",

@@ -38,7 +38,7 @@ from motok.control.priors.load import check_codebooks
 from motok.control.priors.model import LatentPrior, load_prior
 from motok.control.rl.rollout import as_tensor
 from motok.sim.reference import simulated_clip
-from motok.data.dataset import MotionFile, write_motion
+from motok.data.dataset import MotionFile, MotionWriter
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.humanoid import Humanoid
@@ -129,8 +129,15 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
     qpos, qvel = reference_state(lib, start_clips, start_frames)
     tag = model.kind if model.quantizer is None else f"{model.kind}-m{m}"
     names = [f"{tag}-{i:03d}" for i in range(num_samples)]
-    written, per, video = [], {}, None
-    with runs.torch_threads(cfg.torch_threads), make_progress("steps") as bar:
+    written, frames, per, video = 0, 0, {}, None
+    prov = Provenance(command=command_line(), config={
+        "prior": str(prior_run), "kind": model.kind, "codebooks": m, "seconds": seconds, "num_samples": num_samples,
+        "seed": seed, "data": str(src), "clips": clips, "split": split, "fall_height": fall_height,
+        "control_hz": hz}, inputs={**hash_inputs([src]), "prior#weights": meta.get("model_sha256")})
+    # each batch's clips go to the file as soon as they are simulated: Table 1's 800,000 frames per
+    # row would otherwise be held whole (about 1.3 GB of frames)
+    with runs.torch_threads(cfg.torch_threads), make_progress("steps") as bar, \
+            MotionWriter(out, "motion", prov, skeleton, offsets.astype(np.float32), fps, legacy) as writer:
         task = bar.add_task(f"generate {tag}", total=steps * len(range(0, num_samples, batch)))
         for a in range(0, num_samples, batch):
             ids = np.arange(a, min(a + batch, num_samples))
@@ -138,6 +145,7 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
                           keep_qpos=render is not None and a == 0, on_step=lambda: bar.advance(task))
             if render is not None and a == 0:
                 video = res["qpos"]
+            batch_clips = []
             for k, i in enumerate(ids):
                 p = res["pos"][k, res["alive"][k]]
                 stopped = res["stop"][k]
@@ -149,22 +157,21 @@ def generate(prior_run, out, *, codebooks: int | None = None, seconds: float = 3
                     continue
                 labels = {"prior": model.kind, "codebooks": m, "seed": seed, "sample": int(i),
                           **{k2: per[names[i]][k2] for k2 in ("start_clip", "start_frame", "fell_at_s")}}
-                written.append(simulated_clip(names[i], p, hz, fps, skeleton, offsets, legacy, str(prior_run),
-                                              split="none", labels=labels))
-    if not written:
-        raise UserError(f"{prior_run}: every sample ended before two frames at {fps:g} fps (all fell at once?)")
-    prov = Provenance(command=command_line(), config={
-        "prior": str(prior_run), "kind": model.kind, "codebooks": m, "seconds": seconds, "num_samples": num_samples,
-        "seed": seed, "data": str(src), "clips": clips, "split": split, "fall_height": fall_height,
-        "control_hz": hz}, inputs={**hash_inputs([src]), "prior#weights": meta.get("model_sha256")})
-    write_motion(out, "motion", prov, written, skeleton, offsets.astype(np.float32), fps, legacy)
+                batch_clips.append(simulated_clip(names[i], p, hz, fps, skeleton, offsets, legacy, str(prior_run),
+                                                  split="none", labels=labels))
+            writer.add(batch_clips)
+            written += len(batch_clips)
+            frames += sum(c.num_frames for c in batch_clips)
+            del res, batch_clips
+        if not written:
+            raise UserError(f"{prior_run}: every sample ended before two frames at {fps:g} fps (all fell at once?)")
     fell = [v["fell_at_s"] for v in per.values() if v["stopped"] == "fall"]
     summary = {"output": str(out), "prior": str(prior_run), "kind": model.kind,
                "codebooks": m if model.quantizer is not None else None,
-               "samples": num_samples, "written": len(written), "seconds": seconds,
+               "samples": num_samples, "written": written, "seconds": seconds,
                "seconds_played_mean": float(np.mean([v["seconds"] for v in per.values()])),
                "fell": len(fell), "stopped_other": sum(v["stopped"] not in (None, "fall") for v in per.values()),
-               "frames": int(sum(c.num_frames for c in written)), "fps": fps}
+               "frames": int(frames), "fps": fps}
     if video is not None:
         from motok.sim.render import render_trajectory
         how = ("prior draws" if model.quantizer is None else "the prior's z_p alone" if m == 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -198,9 +199,10 @@ def test_the_kinds_table():
 
 def test_prior_config_check():
     PriorConfig(kind="continuous", log_std_min=-1.0, log_std_max=-1.0).check()  # a fixed std is allowed
-    with pytest.raises(UserError, match="log_std_min must not exceed"):
+    with pytest.raises(UserError, match="^prior.log_std_min must not exceed prior.log_std_max$"):
         PriorConfig(kind="continuous", log_std_min=0.5, log_std_max=0.0).check()
-    with pytest.raises(UserError, match="prior kind must be one of"):
+    with pytest.raises(UserError, match=r"^prior kind must be one of continuous, discrete, discrete\+, hybrid, "
+                                        r"hybrid-vq, not 'vae'$"):
         PriorConfig(kind="vae").check()
 
 
@@ -222,18 +224,19 @@ def test_each_kind_builds_its_bottleneck_from_the_config():
         qc = model.quantizer.cfg
         assert (qc.kind, qc.rvq_base, qc.num_codebooks, qc.codebook_size) == ("rvq" if residual else "ema", "ema", N, K)
         assert (qc.dim, qc.decay, qc.reset_threshold, qc.quantizer_dropout, qc.kmeans_init) == (8, 0.9, 3.0, 0.25, False)
-        spec = model.spec()
-        assert (spec["num_codebooks"], spec["codebook_size"], spec["has_prior"]) == (N, K, KINDS[kind].prior_network)
-        with pytest.raises(UserError, match="offset_to_latent is for the continuous prior"):
+        assert model.spec() == {"kind": kind, "latent_dim": 8, "has_prior": KINDS[kind].prior_network,
+                                "num_codebooks": N, "codebook_size": K, "posterior_hidden": [32],
+                                "prior_hidden": [32], "decoder_hidden": [32]}
+        with pytest.raises(UserError, match=f"^offset_to_latent is for the continuous prior, not '{re.escape(kind)}'$"):
             model.offset_to_latent(x[:, :10], torch.zeros(64, 8))
         if not KINDS[kind].prior_network:
-            with pytest.raises(UserError, match="has no prior network"):
+            with pytest.raises(UserError, match=f"^the {re.escape(kind)} prior has no prior network$"):
                 model.prior_latent(x[:, :10])
     model, x = random_model("continuous")
     assert model.quantizer is None and model.num_codebooks == 0 and model.spec()["codebook_size"] == 0
-    with pytest.raises(UserError, match="no codebooks"):
+    with pytest.raises(UserError, match="^the continuous prior has no codebooks$"):
         model.codebooks()
-    with pytest.raises(UserError, match="no codes"):
+    with pytest.raises(UserError, match="^the continuous prior has no codes: use offset_to_latent$"):
         model.codes_to_latent(x[:, :10], torch.zeros(64, 1, dtype=torch.long))
 
 

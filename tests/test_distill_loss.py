@@ -199,6 +199,44 @@ def test_the_continuous_loss_is_the_weighted_hand_sum():
     assert reached(model, terms["reg_loss"]) == {"posterior"}
 
 
+@pytest.mark.parametrize("kind", ["discrete", "discrete+"])
+def test_the_discrete_loss_is_the_weighted_hand_sum(kind):
+    """No prior network: z_bar = VQ(z) or RVQ(z), the sum of the codes read residual by residual,
+    L_reg on z_bar, no L_mm and no KL; the action and L_reg reach decoder and posterior through the
+    straight-through estimator, the commitment the posterior only."""
+    model = small_model(kind, quantizer_dropout=0.0, vq_codebook_size=8)  # fewer codes than rows: commit > 0
+    x, labels, done = hand_batch()
+    model.train()
+    model(x)  # k-means start
+    codes = model.codebooks().clone()
+    out = model(x)
+    z = out.z
+    r, q_sum, commits = z, torch.zeros_like(z), []
+    for i in range(model.num_codebooks):
+        q = codes[i][out.indices[:, i]]
+        commits.append(((r - q) ** 2).mean())
+        r, q_sum = r - q, q_sum + q
+    assert torch.allclose(out.z_bar, q_sum, atol=1e-5) and out.z_p is None
+    z_bar = z + (q_sum - z).detach()
+    hand = {"action_loss": ((model.decode(x[:, :10], z_bar) - labels) ** 2).sum(-1).mean(),
+            "commit_loss": torch.stack(commits).mean(), "reg_loss": hand_reg([z_bar], done)}
+    total, terms = distill_loss(out, labels, T, done, W)
+    for k, v in hand.items():
+        assert float(terms[k].detach()) == pytest.approx(float(v.detach()), rel=1e-5), k
+    assert float(terms["mm_loss"]) == 0.0 and float(terms["kl_loss"]) == 0.0
+    hand_total = W["action"] * hand["action_loss"] + W["reg"] * hand["reg_loss"] + W["commit"] * hand["commit_loss"]
+    assert float(total.detach()) == pytest.approx(float(hand_total.detach()), rel=1e-5)
+    for k, wk in (("reg_loss", "reg"), ("commit_loss", "commit")):  # neither negligible on this batch
+        assert W[wk] * float(hand[k].detach()) > 1e-3 * float(total.detach()), k
+    params = [p for ps in groups(model).values() for p in ps]
+    g_code = torch.autograd.grad(total, params, retain_graph=True)
+    for a, b in zip(g_code, torch.autograd.grad(hand_total, params, retain_graph=True)):
+        assert torch.allclose(a, b, atol=1e-6, rtol=1e-4)
+    assert reached(model, terms["action_loss"]) == {"decoder", "posterior"}
+    assert reached(model, terms["reg_loss"]) == {"posterior"}
+    assert reached(model, terms["commit_loss"]) == {"posterior"}
+
+
 def test_the_commitment_loss_falls_as_the_encoder_output_moves_toward_its_code():
     rvq = build_quantizer(QuantizerConfig(kind="rvq", rvq_base="ema_reset", num_codebooks=1, codebook_size=2,
                                           dim=2, quantizer_dropout=0.0)).eval()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -24,6 +25,7 @@ from motok.control.expert.train import imitation_mdp
 from motok.control.expert.train import train as train_expert
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.priors.model import KINDS, LatentPrior, PriorConfig, gaussian_kl
+from motok.errors import UserError
 from motok.sim.env import SimConfig
 from motok.sim.reference import load_library
 
@@ -169,6 +171,125 @@ def test_single_codebook_kinds_decode_from_their_code(kind):
     assert torch.allclose(model.codes_to_latent(s, out.indices), expected) and torch.equal(out.z_bar, expected)
 
 
+def set_head(head: torch.nn.Sequential, value: list[float]) -> None:
+    """Make a network output ``value`` whatever its input (last layer: zero weights, bias = value)."""
+    with torch.no_grad():
+        head[-1].weight.zero_()
+        head[-1].bias.copy_(torch.tensor(value))
+
+
+def test_the_kinds_table():
+    """Each kind's row and what follows from it: the losses distillation logs, the ramped weight,
+    the default alpha of Eq. 6, and what the model builds (prior network, quantizer)."""
+    rows = {  # quantized, margin, residual, losses, schedule, alpha
+        "continuous": (False, False, False, ("kl_loss",), "kl", 0.005),
+        "discrete": (True, False, False, ("commit_loss",), None, 0.05),
+        "discrete+": (True, False, True, ("commit_loss",), None, 0.05),
+        "hybrid": (True, True, True, ("commit_loss", "mm_loss"), "mm", 0.05),
+        "hybrid-vq": (True, True, False, ("commit_loss", "mm_loss"), "mm", 0.05),
+    }
+    assert list(KINDS) == list(rows)
+    for kind, row in rows.items():
+        k = KINDS[kind]
+        assert (k.quantized, k.margin, k.residual, k.losses, k.schedule, k.reg) == row, kind
+        model, _ = random_model(kind)
+        assert (model.prior is not None) == (kind != "discrete" and kind != "discrete+")
+        assert (model.quantizer is None) == (kind == "continuous")
+
+
+def test_prior_config_check():
+    PriorConfig(kind="continuous", log_std_min=-1.0, log_std_max=-1.0).check()  # a fixed std is allowed
+    with pytest.raises(UserError, match="^prior.log_std_min must not exceed prior.log_std_max$"):
+        PriorConfig(kind="continuous", log_std_min=0.5, log_std_max=0.0).check()
+    with pytest.raises(UserError, match=r"^prior kind must be one of continuous, discrete, discrete\+, hybrid, "
+                                        r"hybrid-vq, not 'vae'$"):
+        PriorConfig(kind="vae").check()
+
+
+def test_every_network_uses_the_configured_activation():
+    model, x = random_model("hybrid", activation="tanh")  # one hidden layer each: Linear, tanh, Linear
+    for net, inp in ((model.posterior, x), (model.prior, x[:, :10]), (model.decoder, torch.randn(64, 18))):
+        assert torch.allclose(net(inp), net[-1](torch.tanh(net[0](inp))), atol=1e-6)
+
+
+def test_each_kind_builds_its_bottleneck_from_the_config():
+    """Codebook sizes per kind (N x K: residual kinds num_codebooks x codebook_size, single
+    codebooks 1 x vq_codebook_size) and every quantizer setting passed on unchanged."""
+    kw = dict(quantizer="ema", decay=0.9, reset_threshold=3.0, quantizer_dropout=0.25, kmeans_init=False)
+    for kind in QUANTIZED:
+        model, x = random_model(kind, **kw)
+        residual = KINDS[kind].residual
+        N, K = (4, 16) if residual else (1, 32)
+        assert model.codebooks().shape == (N, K, 8) and model.num_codebooks == N
+        qc = model.quantizer.cfg
+        assert (qc.kind, qc.rvq_base, qc.num_codebooks, qc.codebook_size) == ("rvq" if residual else "ema", "ema", N, K)
+        assert (qc.dim, qc.decay, qc.reset_threshold, qc.quantizer_dropout, qc.kmeans_init) == (8, 0.9, 3.0, 0.25, False)
+        assert model.spec() == {"kind": kind, "latent_dim": 8, "has_prior": KINDS[kind].prior_network,
+                                "num_codebooks": N, "codebook_size": K, "posterior_hidden": [32],
+                                "prior_hidden": [32], "decoder_hidden": [32]}
+        with pytest.raises(UserError, match=f"^offset_to_latent is for the continuous prior, not '{re.escape(kind)}'$"):
+            model.offset_to_latent(x[:, :10], torch.zeros(64, 8))
+        if not KINDS[kind].prior_network:
+            with pytest.raises(UserError, match=f"^the {re.escape(kind)} prior has no prior network$"):
+                model.prior_latent(x[:, :10])
+    model, x = random_model("continuous")
+    assert model.quantizer is None and model.num_codebooks == 0 and model.spec()["codebook_size"] == 0
+    with pytest.raises(UserError, match="^the continuous prior has no codebooks$"):
+        model.codebooks()
+    with pytest.raises(UserError, match="^the continuous prior has no codes: use offset_to_latent$"):
+        model.codes_to_latent(x[:, :10], torch.zeros(64, 1, dtype=torch.long))
+
+
+def test_norm_obs_on_hand_values():
+    """(s - mean) / sqrt(var + eps) on the observation's entries of the [s, s~] statistics,
+    clipped to [-5, 5]: mean k, var 4 (var 0 on entry 3, where eps alone divides)."""
+    model, _ = random_model("hybrid")
+    n = model.norm
+    with torch.no_grad():
+        n.mean.copy_(torch.arange(16.0))
+        n.var.fill_(4.0)
+        n.var[3] = 0.0
+    s = torch.arange(10.0) + torch.tensor([2.0, -2.0, 40.0, 2**-10, 0.0, 0.0, -40.0, 0.0, 0.0, 1.0])
+    expect = torch.tensor([1.0, -1.0, 5.0, 2**-10 / math.sqrt(n.eps), 0.0, 0.0, -5.0, 0.0, 0.0, 0.5])
+    assert torch.allclose(model.norm_obs(s[None].expand(3, 10)), expect.expand(3, 10), atol=1e-6)
+    assert torch.allclose(model.norm_obs(s), expect, atol=1e-6)  # one observation, no batch axis
+
+
+@pytest.mark.parametrize("kind", ["continuous", "hybrid"])
+def test_one_observation_without_a_batch_axis(kind):
+    model, x = random_model(kind)
+    s, z = x[0, :10], torch.randn(8)
+    for one, batch in zip(model.prior_latent(s), model.prior_latent(s[None])):
+        assert (one is None and batch is None) or torch.allclose(one, batch[0], atol=1e-6)
+    assert torch.allclose(model.decode(s, z), model.decode(s[None], z[None])[0], atol=1e-6)
+
+
+def test_the_continuous_heads_clamp_log_std_and_sample_by_reparameterisation():
+    """Heads fixed to q = N((1, -0.5), exp(-10, 3)) and p = N((0, 1), exp(0.5, -7)): log-stds
+    clamped to [-5, 1], so q's are (-5, 1) and p's (0.5, -5); z = mu_q + std_q * eps with eps the
+    next normal draws, or mu_q itself without sampling; z_p is the prior mean; L_reg reads mu_q."""
+    model, _ = random_model("continuous", latent_dim=2)
+    set_head(model.posterior, [1.0, -0.5, -10.0, 3.0])
+    set_head(model.prior, [0.0, 1.0, 0.5, -7.0])
+    x = torch.randn(6, 16)
+    mu_p, ls_p = model.prior_latent(x[:, :10])
+    assert torch.equal(ls_p, torch.tensor([0.5, -5.0]).expand(6, 2)) and torch.equal(mu_p[0], torch.tensor([0.0, 1.0]))
+    mq, lq, mp, lp = [1.0, -0.5], [-5.0, 1.0], [0.0, 1.0], [0.5, -5.0]
+    kl = sum(lp[i] - lq[i] + (math.exp(2 * lq[i]) + (mq[i] - mp[i]) ** 2) / (2 * math.exp(2 * lp[i])) - 0.5
+             for i in range(2)) / 2
+    torch.manual_seed(7)
+    out = model(x)
+    torch.manual_seed(7)
+    eps = torch.randn(6, 2)
+    mu_q = torch.tensor(mq).expand(6, 2)
+    assert torch.allclose(out.z, mu_q + torch.exp(torch.tensor(lq)) * eps, atol=1e-6)
+    assert torch.equal(out.z_bar, out.z) and torch.equal(out.z_p, mu_p) and torch.equal(out.reg[0], mu_q)
+    assert float(out.losses["kl"].detach()) == pytest.approx(kl, rel=1e-6)
+    mean = model(x, sample=False)
+    assert torch.equal(mean.z, mu_q) and float(mean.losses["kl"].detach()) == pytest.approx(kl, rel=1e-6)
+    assert torch.allclose(mean.action, model.decode(x[:, :10], mu_q))
+
+
 def test_latent_change_covers_neighbouring_steps_of_one_episode():
     T, n = 3, 2
     lat = torch.tensor([[0.0], [0.0], [1.0], [5.0], [3.0], [5.0]])  # rows step-major: (t, env)
@@ -184,6 +305,8 @@ def test_weight_schedules_ramp_linearly_then_hold():
     assert s.at(0, 800) == pytest.approx(0.1) and s.at(50, 800) == pytest.approx(0.55)
     assert s.at(100, 800) == pytest.approx(1.0) and s.at(700, 800) == pytest.approx(1.0)
     assert WeightSchedule(0.1, 1.0, ramp=0.0).at(0, 10) == 1.0
+    # a ramp shorter than one iteration (0.125 of 4: half an iteration) still starts at `start`
+    assert s.at(0, 4) == pytest.approx(0.1) and s.at(1, 4) == pytest.approx(1.0)
 
 
 def test_prior_recipes_load():

@@ -142,6 +142,22 @@ def test_ema_kinds_have_no_parameters():
 
 
 @pytest.mark.parametrize("kind", CODEBOOK_KINDS)
+def test_train_steps_count_training_forwards_only(kind):
+    """The step counter (a buffer, saved with the codebooks) moves once per training forward,
+    and once more per residual layer a batch used; encode, decode and eval forwards leave it."""
+    q = make(kind, quantizer_dropout=0.0).train()
+    z = torch.randn(2, q.dim, 5)
+    for step in (1, 2, 3):
+        q(z)
+        assert int(q.train_steps) == step
+        assert all(int(layer.train_steps) == step for layer in layers(q))
+    q.decode(q.encode(z))
+    q.eval()(z)
+    assert int(q.train_steps) == 3
+    assert q.train_steps.dtype == torch.int64  # a float32 counter stops counting exactly at 2^24 steps
+
+
+@pytest.mark.parametrize("kind", CODEBOOK_KINDS)
 def test_encode_decode_and_eval_forward_leave_state_untouched(kind):
     q = make(kind, kmeans_init=True)
     before = {k: v.clone() for k, v in q.state_dict().items()}
@@ -164,7 +180,7 @@ def test_ema_update_on_a_hand_example():
     set_codebooks(q, [torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])])
     z = torch.tensor([[0.2, 0.0], [0.0, -0.2], [1.2, 0.2], [0.8, -0.4]]).t()[None]
     out = q(z)
-    assert out.indices.reshape(-1).tolist() == [0, 0, 1, 1]
+    assert out.indices.reshape(-1).tolist() == [0, 0, 1, 1] and out.stats["dead"] == [0]  # ema never resets
     assert torch.allclose(q.ema_count, torch.tensor([1.25, 1.25, 0.75]))
     assert torch.allclose(q.ema_sum, torch.tensor([[0.05, -0.05], [1.25, -0.05], [0.0, 0.75]]))
     expect = torch.tensor([[8 / 195, -8 / 195], [40 / 39, -8 / 195], [0.0, 12 / 13]])
@@ -300,9 +316,10 @@ def test_t2m_gpt_init_starts_each_kind_as_the_official_code(kind):
     assert int(q.initted) == 1  # only the first batch initialises
 
 
-def test_batch_init_with_fewer_rows_than_codes_adds_t2m_gpt_noise():
+@pytest.mark.parametrize("init", ["batch", "t2m_gpt"])
+def test_batch_init_with_fewer_rows_than_codes_adds_t2m_gpt_noise(init):
     K, D = 16, 8
-    q = make("ema", K=K, D=D, init="batch").train()
+    q = make("ema", K=K, D=D, init=init).train()
     z = far_batch(n=10, D=D)
     out = q(z)
     err = (out.z_q - z).abs()
@@ -321,6 +338,64 @@ def test_uniform_init_is_the_old_start_and_bad_inits_are_refused():
     for bad in ({"init": "random"}, {"init": "batch", "kmeans_init": True}):
         with pytest.raises(ValueError, match="init"):
             make("ema", **bad)
+
+
+def line_book(*xs):
+    """Codes (x, 0) on a line, far apart: which code a row (x', 0) goes to is read off by eye."""
+    return torch.tensor([[float(x), 0.0] for x in xs])
+
+
+def on_line(*xs):
+    """(1, 2, n) inputs (x, 0)."""
+    return line_book(*xs).t()[None]
+
+
+def test_reset_window_counts_usage_per_window_and_resets_from_the_batch():
+    """reset_window 2, threshold 1, codes at x = 0, 10, 20, 30. Window 1: step 1 uses codes 0, 1, 2,
+    step 2 code 0 twice; code 3 alone unused, so exactly one code is reset, to the only row value of
+    step 2, (1, 0). Window 2 starts from zero counts: steps 3-4 use codes 1 and 2 only, so codes 0
+    (busy in window 1) and 3 (the new one, unused) are dead, and take the two rows of step 4."""
+    q = make("reset", K=4, D=2, reset_window=2).train()
+    set_codebooks(q, [line_book(0, 10, 20, 30)])
+    assert q(on_line(0.1, 10.1, 20.1)).stats["dead"] == [0]  # step 1: no check
+    assert q(on_line(1, 1)).stats["dead"] == [1]
+    assert torch.equal(q.embed.detach(), line_book(0, 10, 20, 1))
+    assert q(on_line(10.3)).stats["dead"] == [0]
+    out = q(on_line(10.4, 20.4))
+    assert out.indices.reshape(-1).tolist() == [1, 2] and out.stats["dead"] == [2]
+    after = q.embed.detach()
+    assert torch.equal(after[1:3], line_book(10, 20))
+    assert sorted(float(after[k, 0]) for k in (0, 3)) == pytest.approx([10.4, 20.4])
+
+
+def test_as_many_dead_codes_as_rows_take_every_row_once():
+    """8 dead codes and a batch of 8 distinct rows: drawn without replacement, the new codes are
+    the rows themselves in some order (with replacement, 8 draws repeat one with probability
+    1 - 8!/8^8 > 0.99)."""
+    q = make("reset", K=10, D=2).train()
+    set_codebooks(q, [line_book(*range(0, 100, 10))])
+    xs = [0.1, 0.2, 0.3, 0.4, 10.1, 10.2, 10.3, 10.4]
+    assert q(on_line(*xs)).stats["dead"] == [8]
+    assert sorted(float(v) for v in q.embed.detach()[2:, 0]) == pytest.approx(xs)
+
+
+def test_a_reset_ema_code_restarts_with_count_and_sum_of_the_threshold():
+    """ema_reset, decay 1/2, threshold 2, codes (0,0), (10,0), (0,10), (10,10) with counts 1.
+    Four rows around code 0 (sum (0,0)) and four around code 1 (sum (40,0)): n = (4, 4, 0, 0),
+    N <- N/2 + n/2 = (2.5, 2.5, 0.5, 0.5), m <- m/2 + s/2: m0 = (0,0), m1 = (25,0); codes 2 and 3
+    fall under 2 and restart as rows of the batch with count 2 and sum 2 x the row."""
+    q = make("ema_reset", K=4, D=2, decay=0.5, reset_threshold=2.0).train()
+    set_codebooks(q, [torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])])
+    x = torch.tensor([[0.1, 0.0], [-0.1, 0.0], [0.0, 0.1], [0.0, -0.1],
+                      [10.1, 0.0], [9.9, 0.0], [10.0, 0.1], [10.0, -0.1]])
+    out = q(x.t()[None])
+    assert out.indices.reshape(-1).tolist() == [0] * 4 + [1] * 4 and out.stats["dead"] == [2]
+    assert torch.equal(q.ema_count, torch.tensor([2.5, 2.5, 2.0, 2.0]))
+    assert torch.allclose(q.ema_sum[:2], torch.tensor([[0.0, 0.0], [25.0, 0.0]]), atol=1e-6)
+    assert torch.allclose(q.embed[:2], torch.tensor([[0.0, 0.0], [10.0, 0.0]]), atol=1e-4)  # m / N~, N~ ~ N
+    new = q.embed[2:]
+    assert all((x == row).all(1).any() for row in new) and not torch.equal(new[0], new[1])
+    assert torch.equal(q.ema_sum[2:], 2 * new)
 
 
 # --- residual VQ --------------------------------------------------------------------------
@@ -380,6 +455,36 @@ def test_rvq_quantizer_dropout_uses_a_prefix_and_leaves_the_rest_untouched():
     assert {no_drop(torch.randn(2, 8, 10)).stats["num_active_codebooks"] for _ in range(10)} == {3}
 
 
+def test_rvq_quantizer_dropout_share_of_steps_under_a_seed():
+    """quantizer_dropout 0.5 over N = 4: half the steps draw M ~ U{1..4}, so M < 4 on
+    0.5 * 3/4 = 37.5 % of the steps and each M < 4 on 12.5 % (200 steps: binomial std 3.4 %
+    and 2.3 %). Codebooks left out report index -1 and no reset; an explicit M always wins."""
+    q = make("rvq", K=4, D=2, N=4, quantizer_dropout=0.5, rvq_base="ema").train()
+    g = torch.Generator().manual_seed(15)
+    seen = []
+    for _ in range(200):
+        out = q(torch.randn(3, 2, generator=g))
+        m = out.stats["num_active_codebooks"]
+        seen.append(m)
+        assert out.stats["dead"] == [0, 0, 0, 0] and (out.indices[:, m:] == -1).all()
+        assert out.stats["usage"][m:] == out.stats["perplexity"][m:] == [0.0] * (4 - m)
+    assert abs(sum(m < 4 for m in seen) / 200 - 0.375) < 0.1
+    for m in (1, 2, 3):
+        assert abs(seen.count(m) / 200 - 0.125) < 0.07, (m, seen.count(m))
+    assert all(q(torch.randn(3, 2), num_codebooks=2).stats["num_active_codebooks"] == 2 for _ in range(20))
+
+
+def test_single_codebook_kinds_refuse_more_than_one_codebook():
+    for kind in ("vq", "ema_reset", "fsq"):
+        q = build_quantizer(QuantizerConfig(kind=kind, codebook_size=4, dim=3, fsq_levels=[2, 3]))
+        z = torch.randn(2, 3)
+        assert q(z, num_codebooks=1).indices.shape == (2, 1)
+        for call in (lambda: q(z, num_codebooks=2), lambda: q.encode(z, num_codebooks=2),
+                     lambda: q.decode(torch.zeros(2, 1, dtype=torch.long), num_codebooks=2)):
+            with pytest.raises(ValueError, match="num_codebooks must be in 1..1"):
+                call()
+
+
 # --- FSQ ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("levels", [[8, 5, 5, 5], [2, 3, 4]])
@@ -408,6 +513,42 @@ def test_fsq_forward_matches_encode_decode_and_trains_the_projection():
     assert torch.equal(q(z).z_q, q.decode(q.encode(z)))
 
 
+def test_fsq_codes_indices_and_statistics_on_hand_values():
+    """Levels (3, 4) on a 2-d latent (no projections): channel 0 takes tanh(h) rounded to
+    {-1, 0, 1}; channel 1 takes 1.5 tanh(h) rounded to the half-integers {-1.5, -0.5, 0.5, 1.5},
+    divided by 1.5. Index = i0 + 3 i1 with i = code * half_width + half_width.
+    Rows tanh(h) = (0.9, -0.9) [twice], (-0.2, 0.2), (-0.6, 0.5), (0.5, 0.99):
+    channel 0: 0.9 -> 1; -0.2 -> 0; -0.6 -> -1; 0.5 -> 0 (a tie, rounded to even as torch.round);
+    channel 1: -1.35 -> -1.5; 0.3 -> 0.5; 0.75 -> 0.5; 1.485 -> 1.5.
+    Indices 2 + 0, 1 + 6, 0 + 6, 1 + 9 = 2, 7, 6, 10 of K = 12; histogram 2, 1, 1, 1 of 5:
+    usage 4/12, perplexity exp(-(0.4 ln 0.4 + 3 * 0.2 ln 0.2))."""
+    q = build_quantizer(QuantizerConfig(kind="fsq", dim=2, fsq_levels=[3, 4]))
+    v = torch.tensor([[0.9, -0.9], [0.9, -0.9], [-0.2, 0.2], [-0.6, 0.5], [0.5, 0.99]])
+    h = torch.atanh(v)
+    assert float(torch.tanh(h[4, 0])) == 0.5  # the tie is exact in float32
+    codes = torch.tensor([[1.0, -1.0], [1.0, -1.0], [0.0, 1 / 3], [-1.0, 1 / 3], [0.0, 1.0]])
+    perplexity = math.exp(-(0.4 * math.log(0.4) + 3 * 0.2 * math.log(0.2)))
+    for mode in (q.eval(), q.train()):
+        out = mode(h)
+        assert torch.allclose(out.z_q, codes, atol=1e-7)
+        assert out.indices.reshape(-1).tolist() == [2, 2, 7, 6, 10]
+        assert out.stats["usage"] == [pytest.approx(4 / 12)] and out.stats["dead"] == [0]
+        assert out.stats["perplexity"] == [pytest.approx(perplexity, rel=1e-6)]
+        assert out.stats["num_active_codebooks"] == 1
+        assert float(out.losses["commit"]) == 0.0 and float(out.losses["codebook"]) == 0.0
+    assert q.encode(h).reshape(-1).tolist() == [2, 2, 7, 6, 10]
+    assert torch.allclose(q.decode(torch.tensor([[2], [7], [6], [10]])), codes[1:], atol=1e-7)
+
+
+def test_fsq_saves_only_its_seed_steps_and_projections():
+    """The grid (levels, mixed-radix basis, half widths, shifts) follows from the config: a
+    checkpoint holds none of it, so bundles written before and after keep loading."""
+    for dim, extra in ((2, set()), (5, {"project_in.weight", "project_in.bias", "project_out.weight",
+                                          "project_out.bias"})):
+        q = build_quantizer(QuantizerConfig(kind="fsq", dim=dim, fsq_levels=[3, 4]))
+        assert set(q.state_dict()) == {"rng_seed", "train_steps"} | extra
+
+
 # --- statistics, config, checkpoints ------------------------------------------------------
 
 def test_usage_and_perplexity_on_a_hand_example():
@@ -428,6 +569,44 @@ def test_config_validation_and_yaml_style_construction():
             build_quantizer(QuantizerConfig(**bad))
     cfg = from_dict(QuantizerConfig, {"kind": "fsq", "dim": 8, "fsq_levels": [4, 4]})
     assert build_quantizer(cfg).codebook_size == 16
+
+
+def test_config_validation_names_each_bad_value_and_accepts_the_boundaries():
+    SIZES = "codebook_size, dim, num_codebooks and reset_window must be >= 1"
+    RANGES = "need 0 <= decay < 1, eps >= 0 and 0 <= quantizer_dropout <= 1"
+    bad = [("kind 'lfq' is not one of", dict(kind="lfq")),
+           ("rvq_base 'fsq' is not one of", dict(kind="rvq", rvq_base="fsq")),
+           ("num_codebooks=2 needs kind 'rvq'", dict(kind="ema", num_codebooks=2)),
+           (SIZES, dict(codebook_size=0)), (SIZES, dict(dim=0)),
+           (SIZES, dict(kind="rvq", num_codebooks=0)), (SIZES, dict(reset_window=0)),
+           (RANGES, dict(decay=1.0)), (RANGES, dict(decay=-0.1)), (RANGES, dict(eps=-1e-5)),
+           (RANGES, dict(quantizer_dropout=1.5)), (RANGES, dict(quantizer_dropout=-0.5)),
+           ("init 'random' is not one of", dict(init="random")),
+           ("kmeans_init=true contradicts init='batch'", dict(init="batch", kmeans_init=True)),
+           (r"fsq_levels must be a non-empty list of integers >= 2, got \[1, 4\]", dict(kind="fsq", fsq_levels=[1, 4])),
+           ("fsq_levels must be", dict(kind="fsq", fsq_levels=[]))]
+    for message, kw in bad:
+        with pytest.raises(ValueError, match=f"^bad QuantizerConfig: (.*; )?{message}"):  # each problem whole
+            build_quantizer(QuantizerConfig(**kw))
+    with pytest.raises(ValueError, match="kind 'lfq' is not one of .*; need 0 <= decay < 1"):  # every problem, joined
+        build_quantizer(QuantizerConfig(kind="lfq", decay=2.0))
+    for kw in (dict(decay=0.0, eps=0.0, quantizer_dropout=0.0), dict(kind="rvq", num_codebooks=1, quantizer_dropout=1.0),
+               dict(codebook_size=1, dim=1, reset_window=1), dict(init="kmeans", kmeans_init=True),
+               dict(kind="fsq", fsq_levels=[2])):
+        build_quantizer(QuantizerConfig(**kw))
+    kinds = {kind: type(build_quantizer(QuantizerConfig(kind=kind, num_codebooks=2 if kind == "rvq" else 1))).__name__
+             for kind in ("vq", "ema", "reset", "ema_reset", "rvq", "fsq")}
+    assert kinds == {"vq": "VectorQuantizer", "ema": "VectorQuantizer", "reset": "VectorQuantizer",
+                     "ema_reset": "VectorQuantizer", "rvq": "ResidualVQ", "fsq": "FSQuantizer"}
+
+
+def test_output_keeps_the_input_dtype():
+    q = make("ema", K=4, D=2).eval()
+    set_codebooks(q, [torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.5, 0.5]])])
+    z = torch.tensor([[0.9, 0.1], [0.1, 0.8]], dtype=torch.bfloat16)
+    out = q(z)
+    assert out.z_q.dtype == torch.bfloat16 and out.losses["commit"].dtype == torch.float32
+    assert out.indices.tolist() == [[1], [2]] and torch.equal(out.z_q.float(), torch.tensor([[1.0, 0.0], [0.0, 1.0]]))
 
 
 @pytest.mark.parametrize("kind", ["ema_reset", "rvq", "vq", "fsq"])

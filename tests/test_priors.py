@@ -187,6 +187,10 @@ def test_the_kinds_table():
         "discrete+": (True, False, True, ("commit_loss",), None, 0.05),
         "hybrid": (True, True, True, ("commit_loss", "mm_loss"), "mm", 0.05),
         "hybrid-vq": (True, True, False, ("commit_loss", "mm_loss"), "mm", 0.05),
+        # the paper's future work: FSQ has no commitment term; the part-wise prior adds L_part
+        "hybrid-fsq": (True, True, True, ("mm_loss",), "mm", 0.05),
+        "hybrid-grvq": (True, True, True, ("commit_loss", "mm_loss"), "mm", 0.05),
+        "hybrid-parts": (True, True, True, ("commit_loss", "mm_loss", "part_loss"), "mm", 0.05),
     }
     assert list(KINDS) == list(rows)
     for kind, row in rows.items():
@@ -202,7 +206,7 @@ def test_prior_config_check():
     with pytest.raises(UserError, match="^prior.log_std_min must not exceed prior.log_std_max$"):
         PriorConfig(kind="continuous", log_std_min=0.5, log_std_max=0.0).check()
     with pytest.raises(UserError, match=r"^prior kind must be one of continuous, discrete, discrete\+, hybrid, "
-                                        r"hybrid-vq, not 'vae'$"):
+                                        r"hybrid-vq, hybrid-fsq, hybrid-grvq, hybrid-parts, not 'vae'$"):
         PriorConfig(kind="vae").check()
 
 
@@ -225,7 +229,8 @@ def test_each_kind_builds_its_bottleneck_from_the_config():
         assert (qc.kind, qc.rvq_base, qc.num_codebooks, qc.codebook_size) == ("rvq" if residual else "ema", "ema", N, K)
         assert (qc.dim, qc.decay, qc.reset_threshold, qc.quantizer_dropout, qc.kmeans_init) == (8, 0.9, 3.0, 0.25, False)
         assert model.spec() == {"kind": kind, "latent_dim": 8, "has_prior": KINDS[kind].prior_network,
-                                "num_codebooks": N, "codebook_size": K, "posterior_hidden": [32],
+                                "num_codebooks": N, "codebook_size": K, "quantizer": KINDS[kind].quantizer,
+                                "index_columns": N, "posterior_hidden": [32],
                                 "prior_hidden": [32], "decoder_hidden": [32]}
         with pytest.raises(UserError, match=f"^offset_to_latent is for the continuous prior, not '{re.escape(kind)}'$"):
             model.offset_to_latent(x[:, :10], torch.zeros(64, 8))

@@ -54,7 +54,7 @@ def write_motion(path, kind: str, provenance: Provenance, clips: list[Clip], ske
     """Write clips in the packed layout; atomic (see :func:`motok.artifacts.write_artifact`)."""
     if not clips:
         raise ValueError(f"{path}: refusing to write a {kind} artifact with no clips")
-    with MotionWriter(path, kind, provenance, skeleton, offsets, fps, legacy, stats) as w:
+    with MotionWriter(path, kind, provenance, skeleton, offsets, fps, legacy, stats, stream=False) as w:
         w.add(clips)
     return Path(path)
 
@@ -63,10 +63,17 @@ class MotionWriter:
     """A motion artifact written a batch of clips at a time (:meth:`add`), for motion too large
     to hold at once (Table 1's 800,000 generated frames per row): frames go to the file as they
     come and only each clip's name, labels and captions are kept until the end. The file appears
-    only if the ``with`` block ends without an error, as with :func:`write_motion`."""
+    only if the ``with`` block ends without an error, as with :func:`write_motion`.
+
+    ``stream=False`` takes every clip in one :meth:`add` into contiguous datasets (what
+    :func:`write_motion` does): HDF5's chunked, resizable datasets keep dirty chunks in a cache that
+    is written when the file closes, and a disk that fills then fails inside h5py's deallocation,
+    where no error can reach the caller (the process dies). Streaming flushes after every batch so
+    a full disk surfaces as an error from :meth:`add`."""
 
     def __init__(self, path, kind: str, provenance: Provenance, skeleton: Skeleton, offsets: np.ndarray,
-                 fps: float, legacy: bool, stats: tuple | None = None):
+                 fps: float, legacy: bool, stats: tuple | None = None, stream: bool = True):
+        self.stream = stream
         self.path, self.kind, self.provenance = path, kind, provenance
         self.skeleton, self.offsets, self.fps, self.legacy, self.stats = skeleton, offsets, fps, legacy, stats
         self.clips: list[Clip] = []  # frameless copies: the frames are already in the file
@@ -91,9 +98,13 @@ class MotionWriter:
         if not clips:
             return
         n = sum(c.num_frames for c in clips)
+        if not self.stream and self.frames:
+            raise ValueError(f"{self.path}: a writer with stream=False takes all its clips in one add")
         for key in FRAME_KEYS:
             rows = np.concatenate([getattr(c, key) for c in clips]).astype(np.float32)
-            if key not in self.fr:
+            if not self.stream:
+                self.fr.create_dataset(key, data=rows)
+            elif key not in self.fr:
                 self.fr.create_dataset(key, data=rows, maxshape=(None,) + rows.shape[1:],
                                        chunks=(FRAME_CHUNK,) + rows.shape[1:])
             else:
@@ -102,6 +113,8 @@ class MotionWriter:
                 ds[self.frames:] = rows
         if "feature_dim" not in self.f.attrs:
             self.f.attrs["feature_dim"] = int(clips[0].features.shape[1])
+        if self.stream:
+            self.f.flush()
         self.frames += n
         empty = np.zeros((0,))
         self.clips += [replace(c, features=np.zeros((c.num_frames, 0)), joints=empty, local_quats=empty,

@@ -53,8 +53,8 @@ class ComposeTaskConfig:
     hand_body: str = "Hand_R"  # the body that reaches for the upper-body target (a body of the humanoid)
     # m, the target's box in the pelvis' heading frame (x ahead, y left, z up): before the right shoulder,
     # from chest height to above the head
-    target_min: list[float] = field(default_factory=lambda: [0.2, -0.4, 0.2])
-    target_max: list[float] = field(default_factory=lambda: [0.45, -0.1, 0.7])  # m, the box's far corner (as target_min)
+    target_min: In[list[float], "any"] = field(default_factory=lambda: [0.2, -0.4, 0.2])
+    target_max: In[list[float], "any"] = field(default_factory=lambda: [0.45, -0.1, 0.7])  # m, the box's far corner (as target_min)
     target_seconds: In[float, "> 0"] = 2.0  # a new hand target this often (4 per 8 s navigation episode)
     k_hand: In[float, ">= 0"] = 10.0  # exp(-k_hand d^2), d in m: halves at 26 cm, so the whole box is within reach of a gradient
     w_nav: In[float, ">= 0"] = 0.5  # weight of navigation's reward (Eq. 16, itself at most 1)

@@ -51,6 +51,7 @@ from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.tasks import registry
 from motok.control.tasks.episodes import Act, Step, play_episodes
 from motok.errors import UserError
+from motok.ranges import In
 
 NAME = "multitask"
 SWITCH = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*s\s+(\S+)\s*$")
@@ -60,7 +61,7 @@ SWITCH = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*s\s+(\S+)\s*$")
 class MultitaskConfig:
     # the sub-tasks (registry names), each with its settings from the recipe's tasks.NAME section
     tasks: list[str] = field(default_factory=lambda: ["navigation", "inbetween", "hmd", "steering"])
-    weights: list[float] | None = None  # share of the environments per sub-task, in `tasks` order; None: equal
+    weights: In[list[float] | None, "> 0"] = None  # share of the environments per sub-task, in `tasks` order; None: equal
     # evaluation and video: "SECONDS NAME" entries, at which time into an episode every environment switches
     # to the sub-task NAME (zero-shot: the policy was trained on single-task episodes)
     switch: list[str] = field(default_factory=lambda: ["4s steering"])

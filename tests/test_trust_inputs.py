@@ -90,10 +90,10 @@ def test_ctrl_c_during_preprocess_is_one_line_from_the_parent_and_leaves_no_file
         running = p.poll() is None
         os.killpg(p.pid, signal.SIGINT)
         _, err = p.communicate(timeout=60)
-        if running and p.returncode == 130:
+        if running and p.returncode in (130, -signal.SIGINT):  # a shell sees 130 both ways
             break
         out.unlink(missing_ok=True)
-    assert p.returncode == 130, err
+    assert p.returncode in (130, -signal.SIGINT), err
     assert err.strip().splitlines() == [err.strip()] and err.startswith("error: interrupted"), err
     assert list(tmp_path.iterdir()) == []
 

@@ -35,6 +35,13 @@ def _default_sigint() -> None:
     when it is not), and a test runner may hand that on."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
+def by_ctrl_c(returncode: int) -> bool:
+    """Exit status 130, or killed by SIGINT itself: the same to a shell (``$?`` is 130 both ways).
+    CPython ends a process with SIGINT when a KeyboardInterrupt ever escaped code it ran through
+    ``PyRun_*`` (some extension imports do), even one the program caught and handled after."""
+    return returncode in (130, -signal.SIGINT)
+
+
 def sets(*extra: str) -> list[str]:
     return [a for s in TINY + list(extra) for a in ("--set", s)]
 
@@ -165,7 +172,7 @@ def test_ctrl_c_says_where_it_stopped_and_resume_ends_where_an_uninterrupted_run
         _, err = p.communicate(timeout=60)
         if p.returncode != 0:
             break
-    assert p.returncode == 130, err
+    assert by_ctrl_c(p.returncode), err
     line = err.strip().splitlines()[-1]
     m = re.search(r"last checkpoint: iteration (\d+) in (\S+)\); continue exactly from there with: (motok .*)$", line)
     assert m and line.startswith("interrupted"), err
@@ -182,16 +189,18 @@ def test_ctrl_c_before_the_first_checkpoint_leaves_no_folder(small_dataset, tmp_
     run = tmp_path / "run"
     env = {**os.environ, "MOTOK_NO_PROGRESS": "1"}
     args = ["-q", "tokenize", "train", "-d", str(small_dataset), "-o", str(run),
-            *sets("iterations=100000", "save_every=100000")]
+            *sets("iterations=100000", "save_every=100000", "log_every=1")]
     p = subprocess.Popen(preexec_fn=_default_sigint, args=[sys.executable, "-m", "motok.cli.main", *args], cwd=REPO, env=env,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
-    while not any(tmp_path.glob(".run.*.part")) and p.poll() is None and time.time() < deadline:  # claimed
+    # Interrupt the training loop itself (its first logged iterations in the claimed folder), not
+    # whatever start-up phase a fixed delay after the claim happens to land in on a loaded machine.
+    while (not any(tmp_path.glob(".run.*.part/metrics.jsonl")) and p.poll() is None
+           and time.time() < deadline):
         time.sleep(0.02)
-    time.sleep(0.5)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 130 and "nothing was kept" in err, err
+    assert by_ctrl_c(p.returncode) and "nothing was kept" in err, err
     assert list(tmp_path.iterdir()) == []
 
 

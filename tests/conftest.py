@@ -151,3 +151,14 @@ def lib(hum, small_dataset, tmp_path_factory):
     from motok.sim.reference import load_library
 
     return load_library(hum, small_dataset, cache_dir=tmp_path_factory.mktemp("reference-cache"))
+
+
+def unavailable(reason: str):
+    """A test whose machine lacks what it needs (root for a tmpfs, Xvfb) skips on a developer's
+    machine, saying why; under CI (``CI`` set, as .ci/run is run) it fails instead, so CI runs
+    every test or says which one it could not."""
+    import os
+
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        pytest.fail(f"CI must run this test: {reason}")
+    pytest.skip(reason)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import unavailable
 from typer.testing import CliRunner
 
 from motok.cli.main import app
@@ -210,10 +211,10 @@ def full_disk(tmp_path):
     mnt = tmp_path / "small"
     mnt.mkdir()
     if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs to fill needs root")
+        unavailable("mounting a tmpfs to fill needs root")
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True, text=True)
     if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+        unavailable(f"cannot mount a tmpfs here: {r.stderr.strip()}")
     try:
         (mnt / "filler").write_bytes(b"\0" * 1_700_000)
         yield mnt

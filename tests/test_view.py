@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import unavailable
 from typer.testing import CliRunner
 
 from motok.cli.main import app
@@ -186,7 +187,7 @@ def test_without_a_display_view_fails_in_one_line_that_says_how_to_get_a_window(
 def xvfb():
     """A virtual X display (Xvfb on a free display number) for the module, or a skip that says why."""
     if shutil.which("Xvfb") is None:
-        pytest.skip("Xvfb is not installed (apt-get install xvfb; .ci/run installs it)")
+        unavailable("Xvfb is not installed (apt-get install xvfb; .ci/run installs it)")
     r, w = os.pipe()
     proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "800x600x24", "-nolisten", "tcp"],
                             pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -107,9 +107,21 @@ def _frames_mujoco(hum: Humanoid, qpos: np.ndarray, size, ghost: np.ndarray | No
         renderer.close()
 
 
-def _radii(radius, pos: np.ndarray) -> np.ndarray:
-    """``(K,)`` marker radii (m) from one radius or one per marker of ``pos`` ``(T, K, 3)``."""
-    return np.broadcast_to(np.asarray(radius, dtype=np.float64), pos.shape[1:2])
+def _even(size) -> tuple[int, ...]:
+    """``(width, height)`` rounded up to even numbers, which video encoders (yuv420p) need."""
+    return tuple(int(s) + int(s) % 2 for s in size)
+
+
+def _markers(markers, rgba, radius) -> tuple | None:
+    """``(pos (T, K, 3), rgba (T, K, 4), radius (K,))`` of the marker arguments of
+    :func:`render_trajectory`, or None without markers."""
+    if markers is None:
+        return None
+    pos = np.asarray(markers, dtype=np.float64)
+    if pos.ndim != 3 or pos.shape[-1] != 3:
+        raise UserError(f"markers must have shape (T, K, 3), not {pos.shape}")
+    return (pos, np.broadcast_to(np.asarray(rgba, dtype=np.float32), pos.shape[:2] + (4,)),
+            np.broadcast_to(np.asarray(radius, dtype=np.float64), pos.shape[1:2]))
 
 
 def trajectory_frames(hum: Humanoid, qpos: np.ndarray, *, size=(640, 480), ghost: np.ndarray | None = None,
@@ -117,12 +129,7 @@ def trajectory_frames(hum: Humanoid, qpos: np.ndarray, *, size=(640, 480), ghost
                       marker_radius: float | np.ndarray = 0.08):
     """The MuJoCo frames ``(H, W, 3) uint8`` of :func:`render_trajectory`, one per row of ``qpos``,
     as an iterator (for composing videos: two runs side by side); raises where there is no GL."""
-    mk = None
-    if markers is not None:
-        pos = np.asarray(markers, dtype=np.float64)
-        mk = (pos, np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,)),
-              _radii(marker_radius, pos))
-    return _frames_mujoco(hum, qpos, tuple(int(s) + int(s) % 2 for s in size), ghost, title, mk)
+    return _frames_mujoco(hum, qpos, _even(size), ghost, title, _markers(markers, marker_rgba, marker_radius))
 
 
 def _caption(img: np.ndarray, title: str | None) -> np.ndarray:
@@ -155,14 +162,8 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
     if out.suffix.lower() not in SUFFIXES:
         raise UserError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
     out.parent.mkdir(parents=True, exist_ok=True)
-    size = tuple(int(s) + int(s) % 2 for s in size)
-    mk = None
-    if markers is not None:
-        pos = np.asarray(markers, dtype=np.float64)
-        if pos.ndim != 3 or pos.shape[-1] != 3:
-            raise UserError(f"markers must have shape (T, K, 3), not {pos.shape}")
-        rgba = np.broadcast_to(np.asarray(marker_rgba, dtype=np.float32), pos.shape[:2] + (4,))
-        mk = (pos, rgba, _radii(marker_radius, pos))
+    size = _even(size)
+    mk = _markers(markers, marker_rgba, marker_radius)
     mujoco = backend in ("auto", "mujoco")
     frames = _mujoco_frames(hum, qpos, size, ghost, title, mk, required=backend == "mujoco") if mujoco else None
     if frames is None:  # asked for, or MuJoCo cannot draw here: the stick figure of the body positions

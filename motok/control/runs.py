@@ -33,12 +33,13 @@ def load_run(run, kind: str) -> tuple[dict, dict, Humanoid]:
 
 def load_run_model(run, kind: str, config_cls, prefix: str, build) -> tuple[object, Humanoid, torch.nn.Module, dict]:
     """``(cfg, humanoid, model, meta)`` of a control run: its recipe as ``config_cls`` (physics on C
-    MuJoCo, :meth:`~motok.sim.env.SimConfig.portable`), the network ``build(cfg, meta["extra"])``
-    makes, loaded with the bundle's weights under ``prefix`` (``ac.``, ``model.``)."""
+    MuJoCo, :meth:`~motok.sim.env.SimConfig.portable`), the network ``build(cfg, meta)`` makes
+    (from the sizes in ``meta["extra"]``; a task policy also from the prior the run links),
+    loaded with the bundle's weights under ``prefix`` (``ac.``, ``model.``)."""
     meta, state, hum = load_run(run, kind)
     cfg = from_dict(config_cls, meta["config"])
     cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
-    model = build(cfg, meta["extra"])
+    model = build(cfg, meta)
     model.load_state_dict(split_state(state, prefix))
     return cfg, hum, model, meta
 

@@ -71,5 +71,5 @@ def build_actor_critic(n: NetConfig, obs_dim: int, goal_dim: int, action_dim: in
 
 def load_expert(run) -> tuple[ExpertConfig, Humanoid, ActorCritic, dict]:
     """A trained expert's recipe, humanoid (hash checked), actor-critic and bundle metadata."""
-    return runs.load_run_model(run, KIND, ExpertConfig, "ac.", lambda cfg, ex: build_actor_critic(
-        cfg.net, ex["obs_dim"], ex["goal_dim"], ex["action_dim"]))
+    return runs.load_run_model(run, KIND, ExpertConfig, "ac.", lambda cfg, meta: build_actor_critic(
+        cfg.net, *(meta["extra"][k] for k in ("obs_dim", "goal_dim", "action_dim"))))

@@ -37,7 +37,6 @@ import numpy as np
 import torch
 
 from motok.checkpoint import register_kind
-from motok.config import from_dict
 from motok.control import runs
 from motok.control.highlevel.heads import PartCategoricalPolicy
 from motok.control.mdp.actions import residual_targets
@@ -203,13 +202,16 @@ def task_mdp(cfg: TaskTrainConfig, hum: Humanoid, lib: ReferenceLibrary, model: 
 def load_task_run(run) -> tuple[TaskTrainConfig, Humanoid, ActorCritic, LatentPrior, float, dict]:
     """``(cfg, humanoid, high-level actor-critic, frozen prior, prior action scale, meta)``."""
     run = Path(run)
-    meta, state, hum = runs.load_run(run, KIND)
-    cfg = from_dict(TaskTrainConfig, meta["config"])
-    cfg.env.portable()  # trained on a GPU or not, used on C MuJoCo unless told otherwise
-    pcfg, phum, model, _ = load_prior(runs.linked_path(run, meta, "prior"))
-    if runs.mjcf_hash(phum) != meta["extra"]["mjcf_sha256"]:
-        raise UserError(f"{run}: its prior now has another humanoid than the one the policy was trained on")
-    ex = meta["extra"]
-    ac = build_high_level(cfg.net, model, ex["obs_dim"], ex["goal_dim"], cfg.codebooks)
-    ac.load_state_dict(runs.split_state(state, "ac."))
-    return cfg, hum, ac, model, pcfg.action.scale, meta
+    prior = {}
+
+    def build(cfg: TaskTrainConfig, meta: dict) -> ActorCritic:
+        # The policy's heads are the linked prior's codebooks: the prior is loaded first, and kept.
+        pcfg, phum, model, _ = load_prior(runs.linked_path(run, meta, "prior"))
+        ex = meta["extra"]
+        if runs.mjcf_hash(phum) != ex["mjcf_sha256"]:
+            raise UserError(f"{run}: its prior now has another humanoid than the one the policy was trained on")
+        prior.update(model=model, scale=pcfg.action.scale)
+        return build_high_level(cfg.net, model, ex["obs_dim"], ex["goal_dim"], cfg.codebooks)
+
+    cfg, hum, ac, meta = runs.load_run_model(run, KIND, TaskTrainConfig, "ac.", build)
+    return cfg, hum, ac, prior["model"], prior["scale"], meta

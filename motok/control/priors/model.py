@@ -356,6 +356,6 @@ class DistillConfig:
 
 def load_prior(run) -> tuple[DistillConfig, Humanoid, LatentPrior, dict]:
     """A distilled prior in eval mode, with its config, humanoid (hash checked) and metadata."""
-    cfg, hum, model, meta = runs.load_run_model(run, KIND, DistillConfig, "model.", lambda cfg, ex: LatentPrior(
-        cfg.prior, ex["obs_dim"], ex["goal_dim"], ex["action_dim"]))
+    cfg, hum, model, meta = runs.load_run_model(run, KIND, DistillConfig, "model.", lambda cfg, meta: LatentPrior(
+        cfg.prior, *(meta["extra"][k] for k in ("obs_dim", "goal_dim", "action_dim"))))
     return cfg, hum, model.eval(), meta

@@ -28,7 +28,6 @@ import numpy as np
 import torch
 
 import mujoco
-from mujoco import rollout
 
 from motok.config import load_config
 from motok.control.expert.model import ExpertConfig
@@ -37,6 +36,7 @@ from motok.data.dataset import select_clips
 from motok.sim.humanoid import HumanoidConfig, load_humanoid
 from motok.sim.mjcf import humanoid_xml, measure_humanoid
 from motok.sim.reference import load_library
+from rates import raw_rate, train_rate  # benchmarks/rates.py, beside this file
 
 PREVIOUS = dict(self_collision="all", solver_iterations=20, ls_iterations=10, jacobian="auto", islands=True)
 
@@ -60,38 +60,11 @@ def env_rate(mdp, std: float, seconds: float, record: list | None = None) -> flo
     return steps / (time.perf_counter() - t0)
 
 
-def raw_rate(m, pairs, substeps: int, nthread: int = 2, repeats: int = 3) -> float:
-    """Best-of-``repeats`` mj_step/s of ``mujoco.rollout`` on the recorded pairs."""
-    d = mujoco.MjData(m)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    qpos, qvel, ctrl = (np.concatenate([p[i] for p in pairs]) for i in range(3))
-    state = np.zeros((len(qpos), mujoco.mj_stateSize(m, spec)))
-    for i in range(len(qpos)):
-        d.qpos[:], d.qvel[:] = qpos[i], qvel[i]
-        mujoco.mj_getState(m, d, state[i], spec)
-    control = np.ascontiguousarray(np.repeat(ctrl[:, None], substeps, 1))
-    out = np.zeros((len(qpos), substeps, state.shape[1]))
-    datas = [mujoco.MjData(m) for _ in range(nthread)]
-    best = 0.0
-    with rollout.Rollout(nthread=nthread) as pool:
-        pool.rollout([m] * len(qpos), datas, state, control, nstep=substeps, state=out)  # warm-up
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            pool.rollout([m] * len(qpos), datas, state, control, nstep=substeps, state=out)
-            best = max(best, len(qpos) * substeps / (time.perf_counter() - t0))
-    return best
-
-
-def train_rate(hum, lib, cfg: ExpertConfig, iterations: int) -> dict:
+def expert_rate(hum, lib, cfg: ExpertConfig, iterations: int) -> dict:
     torch.set_num_threads(max(1, cfg.torch_threads))
     tr = ExpertTrainer(cfg, hum, lib)
     tr.start_segment()
-    tr.step()  # warm-up: first-call allocations
-    rows = [tr.step() for _ in range(iterations)]
-    wall = sum(r["rollout_s"] + r["update_s"] for r in rows)
-    return {"samples_per_s": tr.samples_per_iteration * iterations / wall,
-            "rollout_s": float(np.mean([r["rollout_s"] for r in rows])),
-            "update_s": float(np.mean([r["update_s"] for r in rows]))}
+    return train_rate(tr, iterations)
 
 
 def measure(name: str, xml: str, data, clips, cfg: ExpertConfig, tmp: Path, a) -> dict:
@@ -103,9 +76,9 @@ def measure(name: str, xml: str, data, clips, cfg: ExpertConfig, tmp: Path, a) -
     mdp = imitation_mdp(hum, lib, cfg.env, cfg.task, cfg.action, cfg.seed)
     pairs: list = []
     env_rate(mdp, std, min(a.seconds, 2.0), record=pairs)
-    raw = raw_rate(hum.model, pairs, mdp.env.substeps)
+    raw = raw_rate(hum.model, pairs, mdp.env.substeps, repeats=3)
     env = max(env_rate(mdp, std, a.seconds) for _ in range(2))
-    train = train_rate(hum, lib, cfg, a.iterations)
+    train = expert_rate(hum, lib, cfg, a.iterations)
     return {"name": name, "substeps": mdp.env.substeps, "raw": raw, "env": env, **train}
 
 

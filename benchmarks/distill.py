@@ -32,7 +32,7 @@ from motok.control.expert.model import load_expert
 from motok.control.expert.train import imitation_mdp
 from motok.data.dataset import select_clips
 from motok.sim.reference import load_library
-from tasks import steps_per_s  # benchmarks/tasks.py, beside this file
+from rates import steps_per_s, train_rate  # benchmarks/rates.py, beside this file
 
 
 def main():
@@ -65,14 +65,12 @@ def main():
     for _ in range(a.iterations):
         tr.collector.collect()
     labelled = N * T * a.iterations / (time.perf_counter() - t0)
-    tr.step()  # warm-up of the update
-    rows = [tr.step() for _ in range(a.iterations)]
-    wall = sum(r["rollout_s"] + r["update_s"] for r in rows)
-    train = tr.samples_per_iteration * a.iterations / wall
+    t = train_rate(tr, a.iterations)  # its warm-up step warms the update up
+    train = t["samples_per_s"]
     print(f"{'env-steps/s':>12} {'labelled/s':>11} {'labelled/env':>13} {'train samples/s':>16} "
           f"{'train/labelled':>15} {'rollout s':>10} {'update s':>9}")
     print(f"{env:>12,.0f} {labelled:>11,.0f} {labelled / env:>13.2f} {train:>16,.0f} {train / labelled:>15.2f} "
-          f"{np.mean([r['rollout_s'] for r in rows]):>10.3f} {np.mean([r['update_s'] for r in rows]):>9.3f}")
+          f"{t['rollout_s']:>10.3f} {t['update_s']:>9.3f}")
     print(f"load average after {os.getloadavg()[0]:.2f}")
 
 

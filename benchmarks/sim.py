@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 import mujoco
-from mujoco import rollout
 
 from motok.control.expert.train import imitation_mdp
 from motok.control.mdp.actions import ActionConfig
@@ -43,6 +42,7 @@ from motok.sim.env import SimConfig
 from motok.sim.humanoid import load_humanoid
 from motok.sim.mjcf import build_humanoid
 from motok.sim.reference import load_library
+from rates import raw_rate  # benchmarks/rates.py, beside this file
 
 
 def _dataset(tmp: Path) -> Path:
@@ -99,30 +99,6 @@ def run_env(hum, lib, n: int, stepper: str, seconds: float, record: list | None 
     return steps / (time.perf_counter() - t0), (time.thread_time() - c0 - physics[0]) / steps
 
 
-def raw_rate(hum, pairs, substeps: int, nthread: int, cpu: bool = False) -> float:
-    """mj_step/s stepping the recorded (state, control) pairs in C++ rollouts; with ``cpu`` (one
-    thread, on the caller's) per second of the thread's CPU time instead of wall time."""
-    m = hum.model
-    d = mujoco.MjData(m)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    qpos = np.concatenate([p[0] for p in pairs])
-    qvel = np.concatenate([p[1] for p in pairs])
-    ctrl = np.concatenate([p[2] for p in pairs])
-    state = np.zeros((len(qpos), mujoco.mj_stateSize(m, spec)))
-    for i in range(len(qpos)):
-        d.qpos[:], d.qvel[:] = qpos[i], qvel[i]
-        mujoco.mj_getState(m, d, state[i], spec)
-    control = np.ascontiguousarray(np.repeat(ctrl[:, None], substeps, 1))
-    out = np.zeros((len(qpos), substeps, state.shape[1]))
-    datas = [mujoco.MjData(m) for _ in range(nthread)]
-    with rollout.Rollout(nthread=nthread if nthread > 1 else 0) as pool:
-        pool.rollout([m] * len(qpos), datas, state, control, nstep=substeps, state=out)  # warm the pool up
-        clock = time.thread_time if cpu else time.perf_counter
-        t0 = clock()
-        pool.rollout([m] * len(qpos), datas, state, control, nstep=substeps, state=out)
-        return len(qpos) * substeps / (clock() - t0)
-
-
 def raw_warp(hum, pairs, substeps: int, n: int, device: str, seconds: float) -> float:
     """mj_step/s (world-steps) of MuJoCo Warp on ``n`` worlds started from recorded states, timing
     only its step calls: the device's physics limit, as ``raw_rate`` is the CPU's."""
@@ -173,9 +149,9 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     pairs: list = []
     run_env(hum, lib, 64, args.steppers[0], min(args.seconds, 2.0), record=pairs)
-    raw1 = max(raw_rate(hum, pairs, S, 1) for _ in range(args.repeats))
-    raw2 = max(raw_rate(hum, pairs, S, 2) for _ in range(args.repeats))
-    raw_cpu = max(raw_rate(hum, pairs, S, 1, cpu=True) for _ in range(args.repeats))
+    raw1 = max(raw_rate(hum.model, pairs, S, 1) for _ in range(args.repeats))
+    raw2 = max(raw_rate(hum.model, pairs, S, 2) for _ in range(args.repeats))
+    raw_cpu = max(raw_rate(hum.model, pairs, S, 1, cpu=True) for _ in range(args.repeats))
     print(f"raw mj_step rate on {sum(len(p[0]) for p in pairs)} recorded env states (best of {args.repeats}): "
           f"{raw1:,.0f} steps/s on 1 thread, {raw2:,.0f} steps/s on 2 threads, {raw_cpu:,.0f} per CPU second")
     print("ratio: env mj_step/s over the raw 2-thread rate measured just before. python: CPU ms per control step")
@@ -187,7 +163,7 @@ def main() -> None:
         for n in args.envs:
             runs = []
             for _ in range(args.repeats):
-                raw = raw_rate(hum, pairs, S, 2)
+                raw = raw_rate(hum.model, pairs, S, 2)
                 runs.append((*run_env(hum, lib, n, stepper, args.seconds, device=args.device), raw))
             ratios = [r * n * S / raw for r, _, raw in runs]
             rate, _, raw = max(runs)

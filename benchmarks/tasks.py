@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 import numpy as np
 import torch
@@ -34,20 +33,7 @@ from motok.control.highlevel.train import TaskTrainer
 from motok.control.mdp.task_env import TaskEnv
 from motok.data.dataset import select_clips
 from motok.sim.reference import humanoid_for, load_library
-
-
-def steps_per_s(mdp: TaskEnv, actions, seconds: float) -> float:
-    """Control steps per second of ``mdp`` under ``actions(rng) -> (N, ...)``, with resets."""
-    mdp.reset()
-    rng = np.random.default_rng(0)
-    steps, t0 = 0, time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
-        _, _, _, term, trunc, _ = mdp.step(actions(rng))
-        done = term | trunc
-        if done.any():
-            mdp.reset(np.flatnonzero(done))
-        steps += mdp.num_envs
-    return steps / (time.perf_counter() - t0)
+from rates import steps_per_s, train_rate  # benchmarks/rates.py, beside this file
 
 
 def main():
@@ -88,14 +74,12 @@ def main():
 
     decoded = max(steps_per_s(plain, random_actions, a.seconds) for _ in range(2))
     tr.start_segment()
-    tr.step()  # warm-up
-    rows = [tr.step() for _ in range(a.iterations)]
-    wall = sum(r["rollout_s"] + r["update_s"] for r in rows)
-    train = tr.samples_per_iteration * a.iterations / wall
+    t = train_rate(tr, a.iterations)
+    train = t["samples_per_s"]
     print(f"{'env-steps/s':>12} {'decoded/s':>10} {'decoded/env':>12} {'train samples/s':>16} {'train/decoded':>14} "
           f"{'rollout s':>10} {'update s':>9}")
     print(f"{env:>12,.0f} {decoded:>10,.0f} {decoded / env:>12.2f} {train:>16,.0f} {train / decoded:>14.2f} "
-          f"{np.mean([r['rollout_s'] for r in rows]):>10.3f} {np.mean([r['update_s'] for r in rows]):>9.3f}")
+          f"{t['rollout_s']:>10.3f} {t['update_s']:>9.3f}")
     print(f"load average after {os.getloadavg()[0]:.2f}")
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from motok.checkpoint import CheckpointError, load_bundle
+from motok.checkpoint import CheckpointError, load_bundle, read_meta
 from motok.config import from_dict
 from motok.sim.humanoid import Humanoid, load_humanoid
 
@@ -44,6 +44,15 @@ def load_run_model(run, kind: str, config_cls, prefix: str, build) -> tuple[obje
     return cfg, hum, model, meta
 
 
+def resumed_meta(run, kind: str, resume: bool) -> dict | None:
+    """The metadata of the checkpoint a resume of ``run`` continues, for what must be known before
+    anything is built (what the run holds, settings it resolved); None when not resuming, or when
+    ``run`` has no checkpoint yet (a resume that starts it)."""
+    if resume and (Path(run) / "bundle.json").exists():
+        return read_meta(run, kind)
+    return None
+
+
 def run_library(run, meta: dict, hum: Humanoid, control_hz, data=None, clips: str | None = None,
                 split: str | None = None, hint: str = ": pass --data"):
     """``(dataset, library)`` to evaluate a run on: its own dataset and clips unless ``data``,
@@ -62,8 +71,6 @@ def link_record(key: str, linked_run, kind: str) -> dict:
     metadata: ``key``, a path the bundle stores relative to itself (so the two can move
     together), and ``KEY_info``: its absolute path (found from anywhere on this machine) and what
     identifies its weights."""
-    from motok.checkpoint import read_meta
-
     meta = read_meta(linked_run, kind)
     ex, path = meta["extra"], Path(linked_run).resolve()
     return {key: path, f"{key}_info": {"absolute": str(path), "model_sha256": meta.get("model_sha256"),

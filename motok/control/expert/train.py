@@ -131,13 +131,8 @@ class ExpertTrainer:
 
     # ------------------------------------------------------------------ one iteration
     def step(self) -> dict:
-        t0 = time.perf_counter()
-        ro, last_value, stats = self.collector.collect()
-        t1 = time.perf_counter()
-        with runs.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
-            stats.update(self.collector.update_hooks())
-            stats.update(self.ppo.update(ro, last_value, self.iteration))
-        runner.finish_step(self, stats, t0, t1)
+        stats = runner.timed_step(self, self.collector.collect, lambda ro, last_value: {
+            **self.collector.update_hooks(), **self.ppo.update(ro, last_value, self.iteration)})
         if self.sampler.due(self.iteration):
             t2 = time.perf_counter()
             stats.update(self.measure_difficulty())

@@ -15,13 +15,11 @@ high-level action space.
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from motok.checkpoint import read_meta
 from motok.config import checked
 from motok.control import runs
 from motok.control.highlevel.evaluate import evaluate_policy
@@ -71,11 +69,8 @@ class TaskTrainer:
 
     def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
         self.ac.load_state_dict(runs.split_state(model, "ac."))
-        if shared is None:
-            return
-        runner.load_counters(self, shared)
-        self.ppo.opt.load_state_dict(shared["ppo_opt"])
-        runner.load_task_rng(self.mdp, rank)
+        if shared is not None:
+            runner.load_shared(self, shared, rank, ppo_opt=self.ppo.opt)
 
     def start_segment(self) -> None:
         self.collector.start()
@@ -89,12 +84,8 @@ class TaskTrainer:
                 "clips": list(self.lib.names)}
 
     def step(self) -> dict:
-        t0 = time.perf_counter()
-        ro, last_value, stats = self.collector.collect()
-        t1 = time.perf_counter()
-        with runs.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
-            stats.update(self.ppo.update(ro, last_value, self.iteration))
-        return runner.finish_step(self, stats, t0, t1)
+        return runner.timed_step(self, self.collector.collect,
+                                 lambda ro, last_value: self.ppo.update(ro, last_value, self.iteration))
 
 
 def ppo_config(cfg: TaskTrainConfig, model: LatentPrior) -> PPOConfig:
@@ -108,9 +99,10 @@ def resolve_codebooks(cfg: TaskTrainConfig, run, model: LatentPrior, resume: boo
     """Put the active codebooks in ``cfg`` before the run saves it: a resumed run's own (its saved
     config's; None there, from before defaults were resolved, meant all), else the task's paper
     default when the recipe leaves them out (:func:`task_codebooks`)."""
-    if resume and (Path(run) / "bundle.json").exists():
+    saved = runs.resumed_meta(run, KIND, resume)
+    if saved is not None:
         if cfg.codebooks is None:
-            cfg.codebooks = read_meta(run, KIND)["config"].get("codebooks")
+            cfg.codebooks = saved["config"].get("codebooks")
         return
     cfg.codebooks = task_codebooks(model, cfg.task, cfg.codebooks)
 
@@ -149,10 +141,9 @@ def train_from_prior(cfg: TaskTrainConfig, prior_run, run, *, task: str | None =
         checked(cfg)  # the option's range is the field's: task learning chooses codes in at least one codebook
     cfg.check()  # a task named in the recipe or --set is known before anything is loaded
     prior_run, run = Path(prior_run), Path(run)
-    if resume and (run / "bundle.json").exists():
-        saved = read_meta(run, KIND)["extra"]["task"]
-        if saved != cfg.task:
-            raise UserError(f"{run} holds a {saved!r} policy; cannot resume it as {cfg.task!r}")
+    saved = runs.resumed_meta(run, KIND, resume)
+    if saved is not None and saved["extra"]["task"] != cfg.task:
+        raise UserError(f"{run} holds a {saved['extra']['task']!r} policy; cannot resume it as {cfg.task!r}")
     pmeta, _, hum = runs.load_run(prior_run, PRIOR_KIND)
     hz = cfg.env.control_hz or pmeta["config"]["env"]["control_hz"]
     src, lib = runs.run_library(prior_run, pmeta, hum, hz, data, clips, split)

@@ -26,13 +26,12 @@ and codebooks.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from motok.checkpoint import bundle_ref, read_meta
+from motok.checkpoint import read_meta
 from motok.control import runs
 from motok.control.expert.model import KIND as EXPERT_KIND
 from motok.control.expert.model import load_expert
@@ -45,7 +44,6 @@ from motok.control.priors.parts import body_layout
 from motok.control.rl import runner
 from motok.control.rl.networks import ActorCritic
 from motok.control.tasks.imitation import eval_metrics, evaluate, subset
-from motok.data.dataset import select_clips
 from motok.distributed import Dist, average_gradients, world_size
 from motok.errors import UserError
 from motok.sim.humanoid import Humanoid, load_humanoid
@@ -129,11 +127,8 @@ class DistillTrainer:
 
     def load(self, model: dict, shared: dict | None, rank: dict | None) -> None:
         self.model.load_state_dict(runs.split_state(model, "model."))
-        if shared is None:
-            return
-        runner.load_counters(self, shared)
-        self.opt.load_state_dict(shared["opt"])
-        runner.load_task_rng(self.mdp, rank)
+        if shared is not None:
+            runner.load_shared(self, shared, rank, opt=self.opt)
 
     def start_segment(self) -> None:
         self.collector.start()
@@ -191,12 +186,7 @@ class DistillTrainer:
         return out
 
     def step(self) -> dict:
-        t0 = time.perf_counter()
-        batch, stats = self.collector.collect()
-        t1 = time.perf_counter()
-        with runs.torch_threads(self.cfg.update_threads or self.cfg.torch_threads):
-            stats.update(self.update(batch))
-        return runner.finish_step(self, stats, t0, t1)
+        return runner.timed_step(self, self.collector.collect, self.update)
 
 
 # ---------------------------------------------------------------------- entry points
@@ -239,22 +229,18 @@ def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None 
     """``motok control distill``: the prior kind (``prior``, which must agree with the recipe's
     if it names one), the expert's humanoid and clips (or the clips of ``data`` matching
     ``clips``/``split``), then :func:`train`."""
-    from motok.sim.reference import load_library
-
     if prior is not None and prior not in KINDS:
         raise UserError(f"--kind must be one of {', '.join(KINDS)}, not {prior!r}")
     expert_run, run = Path(expert_run), Path(run)
-    if resume and (run / "bundle.json").exists():  # before the recipe's kind: a resume's config is the run's
-        saved = read_meta(run, KIND)["extra"]["prior"]["kind"]
-        if saved != (prior or cfg.prior.kind):
-            raise UserError(f"{run} holds a {saved!r} prior; cannot resume it as {prior or cfg.prior.kind!r}")
+    saved = runs.resumed_meta(run, KIND, resume)  # before the recipe's kind: a resume's config is the run's
+    if saved is not None and saved["extra"]["prior"]["kind"] != (prior or cfg.prior.kind):
+        raise UserError(f"{run} holds a {saved['extra']['prior']['kind']!r} prior; cannot resume it as "
+                        f"{prior or cfg.prior.kind!r}")
     if prior and cfg.prior.kind and cfg.prior.kind != prior:
         raise UserError(f"the recipe is for a {cfg.prior.kind!r} prior, not {prior!r}")
     cfg.prior.kind = prior or cfg.prior.kind
     cfg.prior.check()
-    emeta = read_meta(expert_run, EXPERT_KIND)
-    src = data or bundle_ref(expert_run, emeta, "data", hint=": pass --data")
-    names = select_clips(src, clips, split) if clips or split else emeta["extra"]["clips"]
     hum = load_humanoid(expert_run / "humanoid.xml")
-    lib = load_library(hum, src, control_hz=cfg.env.control_hz, clips=names)
+    src, lib = runs.run_library(expert_run, read_meta(expert_run, EXPERT_KIND), hum, cfg.env.control_hz, data,
+                                clips, split)
     return train(cfg, run, expert_run, lib, resume=resume, until=until, data=src)

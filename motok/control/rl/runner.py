@@ -18,6 +18,7 @@ bundle with every rank's state.
 from __future__ import annotations
 
 import shutil
+import time
 from collections import deque
 from pathlib import Path
 from typing import Callable, Protocol
@@ -30,7 +31,7 @@ from motok.checkpoint import (CheckpointError, MetricsLog, load_bundle, rng_stat
                               sha256_state)
 from motok.config import to_dict
 from motok.control.rl.ppo import KL_WINDOW, kl_warning
-from motok.control.runs import mjcf_hash
+from motok.control.runs import mjcf_hash, torch_threads
 from motok.distributed import Dist, gather, init_distributed, shutdown_distributed
 from motok.errors import UserError
 from motok.resume import carried_links, check_inputs, check_settings
@@ -97,10 +98,31 @@ def load_task_rng(mdp, rank: dict) -> None:
     load_generator(mdp.task.rng, rank["task_rng"])
 
 
+def load_shared(tr, shared: dict, rank: dict, **optimizers) -> None:
+    """What a resume restores in a trainer besides its weights: the counters, each optimiser (named
+    by its ``train_state`` key) and this rank's task generator."""
+    load_counters(tr, shared)
+    for key, opt in optimizers.items():
+        opt.load_state_dict(shared[key])
+    load_task_rng(tr.mdp, rank)
+
+
+def timed_step(tr, collect: Callable[[], tuple], update: Callable[..., dict]) -> dict:
+    """One collect-then-learn iteration of ``tr``: ``collect() -> (*batch, stats)``, then
+    ``update(*batch) -> metrics`` under the update's torch threads (``cfg.update_threads``, else
+    ``cfg.torch_threads``: the rollout and the update want different numbers), counted and timed
+    by :func:`finish_step`."""
+    t0 = time.perf_counter()
+    *batch, stats = collect()
+    t1 = time.perf_counter()
+    with torch_threads(tr.cfg.update_threads or tr.cfg.torch_threads):
+        stats.update(update(*batch))
+    return finish_step(tr, stats, t0, t1)
+
+
 def finish_step(tr, stats: dict, t0: float, t1: float) -> dict:
     """Count one iteration that started at ``t0`` (collection ended at ``t1``) and add the step's
     timing to ``stats``: iteration, samples, training wall time, samples/s, rollout and update seconds."""
-    import time
     n = tr.samples_per_iteration
     tr.iteration += 1
     tr.samples += n

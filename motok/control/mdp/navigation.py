@@ -11,7 +11,8 @@ Pure functions on ``(N, ...)`` arrays, composed by ``motok.control.tasks.navigat
   position term goes on decaying with ``d`` (the fork's code).
 * :func:`sample_targets`: a new target uniform in direction, distance uniform in ``[min, max]``
   (the paper: "within 10 m", ``[0, 10]``).
-* :func:`head_fell`: the fall test, skipped on the first step after a reset.
+* :func:`head_fell`: the fall test, skipped on the first step after a reset; :func:`head_fall`:
+  that test and the falls that end an episode.
 
 Where the authors' fork (``andreazhangyh/hybrid_latent_prior``,
 ``isaacgymenvs/tasks/humanoid_navigation.py``) fixes details the paper leaves open, we follow it:
@@ -111,3 +112,11 @@ def head_fell(head_height, steps, min_height: float):
     (``steps`` counts the steps since the reset, 1 on the first): a reference start state can
     still be settling onto the floor during its first step (the fork's grace step)."""
     return fell(_f64(head_height), min_height) & (steps > 1 if is_tensor(steps) else np.asarray(steps) > 1)
+
+
+def head_fall(head_height, steps, cfg):
+    """``(down, ends)``, each ``(N,)``: the fall test of :func:`head_fell` at ``cfg.fall_height``,
+    and the falls that end an episode: all of them, or none with ``cfg.early_termination`` off
+    (an evaluation that plays every episode to its end)."""
+    down = head_fell(head_height, steps, cfg.fall_height)
+    return down, (down if cfg.early_termination else xp(down).zeros_like(down))

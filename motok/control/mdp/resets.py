@@ -98,3 +98,17 @@ def given_starts(lib: ReferenceLibrary, clips, frames, n: int) -> tuple[np.ndarr
     (0 by default), each broadcast to ``n`` environments."""
     c = np.array([lib.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))], dtype=np.int64)
     return c, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()
+
+
+def free_starts(lib: ReferenceLibrary, n: int, rng, clips=None, frames=None):
+    """Start clips and frames ``(n,)`` of a task that reads no reference ahead (navigation,
+    steering): drawn from ``rng`` (:func:`sample_starts`) unless ``clips`` are given
+    (:func:`given_starts`), whose ``frames`` must lie inside them; where the library is."""
+    if clips is None:
+        return sample_starts(lib, n, rng, 1)
+    c, f = given_starts(lib, clips, frames, n)
+    lengths = host_lengths(lib)
+    bad = (f < 0) | (f >= lengths[c])
+    if bad.any():
+        raise UserError(f"start frames {f[bad].tolist()} are outside their clips (lengths {lengths[c[bad]].tolist()})")
+    return like(lib.starts, c), like(lib.starts, f)

@@ -29,9 +29,9 @@ from typing import Callable
 import numpy as np
 
 from motok.arrays import copy, is_tensor, like, xp
-from motok.control.mdp.navigation import (head_fell, heading_frame_target, navigation_reward, planar_distance,
+from motok.control.mdp.navigation import (head_fall, heading_frame_target, navigation_reward, planar_distance,
                                           sample_targets)
-from motok.control.mdp.resets import host_lengths, reference_state, sample_starts
+from motok.control.mdp.resets import free_starts, reference_state
 from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.mdp.terminations import end_of_step
 from motok.control.tasks.episodes import Step, play_episodes
@@ -139,18 +139,7 @@ class NavigationTask(Task):
         """Reference starts at random clips and frames from the task's generator, unless
         ``clips``/``frames`` (names or indices; frame 0 by default) are given; then a first target."""
         L = self.lib
-        if clips is None:
-            c, f = sample_starts(L, len(ids), self.rng, 1)
-        else:
-            n = len(ids)
-            c = np.array([L.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))], dtype=np.int64)
-            f = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()
-            lengths = host_lengths(L)
-            bad = (f < 0) | (f >= lengths[c])
-            if bad.any():
-                raise UserError(f"navigation task: start frames {f[bad].tolist()} are outside their clips "
-                                f"(lengths {lengths[c[bad]].tolist()})")
-            c, f = like(L.starts, c), like(L.starts, f)
+        c, f = free_starts(L, len(ids), self.rng, clips, frames)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.frame[ids], self.steps[ids], self.target_index[ids] = c, f, 0, 0
         self._new_targets(ids)
@@ -184,8 +173,7 @@ class NavigationTask(Task):
         dist = planar_distance(root, self.target)
         reached = dist < c.reach_radius
         self.reached_step = x.where(reached & (self.reached_step < 0), self.target_steps, self.reached_step)
-        fell = head_fell(b.pos[:, self.head, 2], self.steps, c.fall_height) if c.early_termination \
-            else x.zeros_like(reached)
+        _, fell = head_fall(b.pos[:, self.head, 2], self.steps, c)  # reported only where it ends the episode
         rewards, terminated, truncated = end_of_step(navigation_reward(root, b.vel[:, 0], rot, self.target, c), fell,
                                                      diverged, invalid, self.steps, self.max_steps)
         ended = terminated | truncated

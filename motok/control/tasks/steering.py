@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from motok.arrays import copy, is_tensor, like, xp
-from motok.control.mdp.navigation import head_fell, root_heading
-from motok.control.mdp.resets import reference_state, sample_starts
+from motok.control.mdp.navigation import head_fall, root_heading
+from motok.control.mdp.resets import free_starts, reference_state
 from motok.control.mdp.task_env import Task, TaskEnv
 from motok.control.mdp.terminations import end_of_step
 from motok.control.tasks.episodes import Act, Step, play_episodes
@@ -159,12 +159,7 @@ class SteeringTask(Task):
         """Reference starts at random clips and frames from the task's generator (or the given
         ``clips``, frame ``frames`` or 0), then a first command."""
         L = self.lib
-        if clips is None:
-            c, f = sample_starts(L, len(ids), self.rng, 1)
-        else:
-            n = len(ids)
-            c = like(L.starts, [L.index(x) for x in np.broadcast_to(np.asarray(clips, dtype=object), (n,))])
-            f = like(L.starts, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)))
+        c, f = free_starts(L, len(ids), self.rng, clips, frames)
         self.env.set_state(ids, *reference_state(L, c, f))
         self.steps[ids] = 0
         self._new_commands(ids)
@@ -204,8 +199,7 @@ class SteeringTask(Task):
         x = xp(b.pos)
         ch, sh = root_heading(b.rot[:, 0])  # matrices: no quaternion conversion of every body
         vel = b.vel[:, 0]
-        down = head_fell(b.pos[:, self.head, 2], self.steps, c.fall_height)
-        fell = down if c.early_termination else x.zeros_like(down)
+        down, fell = head_fall(b.pos[:, self.head, 2], self.steps, c)
         rewards, terminated, truncated = end_of_step(steering_reward(vel, ch, sh, self.heading, self.speed, c), fell,
                                                      diverged, invalid, self.steps, self.max_steps)
         speed = x.hypot(vel[:, 0], vel[:, 1])

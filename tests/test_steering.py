@@ -98,6 +98,14 @@ def test_a_dropped_humanoid_falls_and_the_evaluation_counts_it(hum, lib):
     assert res["speed_error_mean"] >= 0.0 and res["mean_reward"] > 0.0
 
 
+def test_given_starts_lie_inside_their_clips(hum, lib):
+    mdp = task_mdp(SteeringTask, SteeringTaskConfig(), hum, lib, 2, base="current")
+    mdp.reset(clips=[0, 1], frames=[0, 2])
+    assert mdp.task.steps.tolist() == [0, 0]
+    with pytest.raises(UserError, match="outside their clips"):
+        mdp.reset(clips=[0, 1], frames=[0, int(lib.lengths[1])])
+
+
 # ----------------------------------------------------------------------------- a tiny real chain
 
 @pytest.fixture(scope="module")

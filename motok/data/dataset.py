@@ -177,21 +177,16 @@ class NonFiniteMotionError(UserError):
     """A motion artifact whose frames hold NaN or infinite numbers."""
 
 
-class MotionFile:
-    """Read access to a motion or motion-dataset artifact; clips load lazily by name or index."""
+class ClipFile:
+    """What the readers of clip-indexed artifacts share (motion, motion-dataset, tokens): the open
+    file, its skeleton, the clips' names and splits, their captions; a context manager."""
 
-    def __init__(self, path, kind: str | tuple[str, ...] = MOTION_KINDS):
+    def __init__(self, path, kind: str | tuple[str, ...]):
         self.path = Path(path)
-        self.h5 = open_artifact(path, kind)
-        f = self.h5
-        self.kind = str(f.attrs["kind"])
-        self.fps = float(f.attrs["fps"])
-        self.legacy = bool(f.attrs["legacy"])
+        self.h5 = f = open_artifact(path, kind)
         self.skeleton = Skeleton.from_dict(json.loads(f["skeleton"].attrs["definition"]), source=f"{path}:/skeleton")
-        self.offsets = f["skeleton/offsets"][()]
         self.names = read_strings(f["clips/name"])
         self.splits = read_strings(f["clips/split"])
-        self.frame_offsets = f["clips/offset"][()]
         self._index = {n: i for i, n in enumerate(self.names)}
         self._captions = None
 
@@ -214,6 +209,31 @@ class MotionFile:
     def index(self, name_or_index) -> int:
         return clip_index(self.names, name_or_index, positions=self._index, where=f"{self.path}: ")
 
+    def captions(self, clip, tokens: bool = False) -> list[tuple]:
+        """``[(text, start, end)]`` of a clip; with ``tokens``, ``[(text, tokens, start, end)]``
+        (the ``word/POS`` tokens of the annotations, "" where there were none)."""
+        i = self.index(clip)
+        if self._captions is None:  # read once: per-call reads made whole-dataset loops quadratic
+            g = self.h5["captions"]
+            self._captions = (g["clip"][()], read_strings(g["text"]), read_strings(g["tokens"]), g["start"][()],
+                              g["end"][()])
+        owner, texts, toks, start, end = self._captions
+        return [(texts[j], *((toks[j],) if tokens else ()), float(start[j]), float(end[j]))
+                for j in np.flatnonzero(owner == i)]
+
+
+class MotionFile(ClipFile):
+    """Read access to a motion or motion-dataset artifact; clips load lazily by name or index."""
+
+    def __init__(self, path, kind: str | tuple[str, ...] = MOTION_KINDS):
+        super().__init__(path, kind)
+        f = self.h5
+        self.kind = str(f.attrs["kind"])
+        self.fps = float(f.attrs["fps"])
+        self.legacy = bool(f.attrs["legacy"])
+        self.offsets = f["skeleton/offsets"][()]
+        self.frame_offsets = f["clips/offset"][()]
+
     def frames(self, key: str, clip) -> np.ndarray:
         """The rows ``key`` (features, joints, ...) of one clip, refused if any is NaN or inf."""
         i = self.index(clip)
@@ -231,18 +251,6 @@ class MotionFile:
         bad = int(np.flatnonzero(~finite.reshape(len(rows), -1).all(1))[0])
         raise NonFiniteMotionError(f"{self.path}: clip {self.names[clip]!r} frame {bad}: {key} holds NaN or inf "
                                    f"(motion with non-finite numbers cannot be tracked or measured)")
-
-    def captions(self, clip, tokens: bool = False) -> list[tuple]:
-        """``[(text, start, end)]`` of a clip; with ``tokens``, ``[(text, tokens, start, end)]``
-        (the ``word/POS`` tokens of the annotations, "" where there were none)."""
-        i = self.index(clip)
-        if self._captions is None:  # read once: per-call reads made whole-dataset loops quadratic
-            g = self.h5["captions"]
-            self._captions = (g["clip"][()], read_strings(g["text"]), read_strings(g["tokens"]), g["start"][()],
-                              g["end"][()])
-        owner, texts, toks, start, end = self._captions
-        return [(texts[j], *((toks[j],) if tokens else ()), float(start[j]), float(end[j]))
-                for j in np.flatnonzero(owner == i)]
 
     def clip(self, clip) -> Clip:
         i = self.index(clip)

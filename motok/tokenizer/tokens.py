@@ -17,10 +17,10 @@ import numpy as np
 import torch
 
 from motok import progress as _progress
-from motok.artifacts import (ArtifactError, Provenance, command_line, hash_inputs, open_artifact, provenance_of,
-                             read_strings, write_artifact, write_strings)
+from motok.artifacts import (ArtifactError, Provenance, command_line, hash_inputs, read_strings, write_artifact,
+                             write_strings)
 from motok.checkpoint import relative_to
-from motok.data.dataset import Clip, MotionFile, write_motion
+from motok.data.dataset import Clip, ClipFile, MotionFile, write_motion
 from motok.features.humanml3d import recover_from_ric, recover_local_quats
 from motok.features.kinematics import acceleration_error, mpjpe
 from motok.skeleton import Skeleton
@@ -176,47 +176,24 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
             "rate": rate, "frames_dropped": int(sum(n % rate for _, n in kept)), "skipped": skipped}
 
 
-class TokenFile:
+class TokenFile(ClipFile):
     """Read access to a ``tokens`` artifact: per-clip indices ``(L, N)`` and captions."""
 
     def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.h5 = open_artifact(path, KIND)
+        super().__init__(path, KIND)
         a = self.h5.attrs
         self.rate, self.num_codebooks = int(a["rate"]), int(a["num_codebooks"])
         self.codebook_size, self.fps = int(a["codebook_size"]), float(a["fps"])
         self.tokenizer_sha256 = str(a["tokenizer_sha256"])
-        self.names = read_strings(self.h5["clips/name"])
-        self.splits = read_strings(self.h5["clips/split"])
         self.offsets = self.h5["clips/offset"][()]
-        self.skeleton = Skeleton.from_dict(json.loads(self.h5["skeleton"].attrs["definition"]),
-                                           source=f"{path}:/skeleton")
         self.skeleton_offsets = self.h5["skeleton/offsets"][()]
-        self._captions = None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.h5.close()
-
-    def __len__(self):
-        return len(self.names)
-
-    @property
-    def provenance(self) -> Provenance:
-        return provenance_of(self.h5)
 
     def indices(self, i: int) -> np.ndarray:
         return self.h5["tokens"][self.offsets[i]:self.offsets[i + 1]]
 
-    def captions(self, i: int) -> list[tuple]:
-        if self._captions is None:  # read once: per-clip string reads make decoding quadratic
-            g = self.h5["captions"]
-            self._captions = (g["clip"][()], read_strings(g["text"]), read_strings(g["tokens"]),
-                              g["start"][()], g["end"][()])
-        clip, text, tok, start, end = self._captions
-        return [(text[j], tok[j], float(start[j]), float(end[j])) for j in np.flatnonzero(clip == i)]
+    def captions(self, clip) -> list[tuple]:
+        """``[(text, tokens, start, end)]`` of a clip, its annotations' tokens included."""
+        return super().captions(clip, tokens=True)
 
 
 # --------------------------------------------------------------------------- decode

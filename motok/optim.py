@@ -24,3 +24,16 @@ def lr_factor(it: int, cfg: OptimConfig) -> float:
     if it < cfg.warmup:
         return (it + 1) / (cfg.warmup + 1)
     return cfg.gamma ** sum(it >= m for m in cfg.milestones)
+
+
+def optimizer_step(loss, params, opt, sched, grad_clip: float) -> None:
+    """One update of a trainer on these settings: the gradients of ``loss``, their norm clipped to
+    ``grad_clip`` (0: not clipped), the optimiser's step, then the schedule's."""
+    import torch  # here: configs import this module, and loading a config needs no torch
+
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    if grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(params, grad_clip)
+    opt.step()
+    sched.step()

@@ -36,7 +36,7 @@ from motok.checkpoint import MetricsLog, load_bundle, resolve_ref
 from motok.config import ConfigError
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
-from motok.optim import lr_factor
+from motok.optim import lr_factor, optimizer_step
 from motok.resume import resolve_config as resume_config
 from motok.gpt.augment import noisy
 from motok.gpt.data import (HOLDOUTS, IGNORE, CodeData, GPTError, SequenceSampler, corrupt,  # noqa: F401
@@ -204,12 +204,7 @@ def _train(cfg: TrainConfig, tokens: Path, run: Path, resume, stop_at, command, 
             if cfg.caption_dropout > 0:
                 drop = (torch.rand(len(seqs), generator=sampler.gen) < cfg.caption_dropout).to(device)
             loss, parts = gpt_loss(net(text.to(device), inp.to(device), drop_text=drop), tgt.to(device))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.optim.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
-            opt.step()
-            sched.step()
+            optimizer_step(loss, model.parameters(), opt, sched, cfg.optim.grad_clip)
             lv = loss.item()
             if not math.isfinite(lv):
                 raise GPTError(f"loss is {lv} at iteration {it}; lower optim.lr")

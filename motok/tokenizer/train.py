@@ -28,7 +28,7 @@ from motok.config import ConfigError
 from motok.data.dataset import MotionFile
 from motok.distributed import (Dist, init_distributed, pick_device, restore_checkpoint, save_checkpoint,
                                shutdown_distributed)
-from motok.optim import OptimConfig, lr_factor
+from motok.optim import OptimConfig, lr_factor, optimizer_step
 from motok.quantize.registry import build_quantizer
 from motok.resume import resolve_config as resume_config
 from motok.tokenizer.model import ACTIVATIONS, KIND, TokenizerError, TrainConfig, build_model, vqvae_loss
@@ -240,12 +240,7 @@ def _train(cfg, data_path, run, resume, stop_at, command, d: Dist) -> dict:
             x = sampler.sample().to(device, non_blocking=True)
             out = net(x)
             total, parts = vqvae_loss(out.recon, x, out.losses, cfg.loss, J, cfg.quantizer.beta)
-            opt.zero_grad(set_to_none=True)
-            total.backward()
-            if cfg.optim.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
-            opt.step()
-            sched.step()
+            optimizer_step(total, model.parameters(), opt, sched, cfg.optim.grad_clip)
 
             m = out.stats.get("num_active_codebooks", model.num_codebooks)
             parts = {k: float(v) for k, v in parts.items()}

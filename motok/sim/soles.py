@@ -14,6 +14,10 @@ Everything is computed on whole ``(N, T, J, .)`` arrays of body positions and ro
 call, no loop over frames), from the bodies a rollout already has (``HumanoidEnv.bodies``) or a
 reference library holds (``body_pos``, ``body_quat``), so simulation and reference are measured by
 the same code at the same rate.
+
+:func:`sole_state` is the per-state form the AMP discriminator can see (``amp.feet``): per foot,
+the height of its lowest corner and that corner's horizontal speed, from one state's body
+positions, rotations and velocities, for a simulated state and a reference frame alike.
 """
 
 from __future__ import annotations
@@ -22,7 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motok.arrays import like, take_along, xp
 from motok.rotations import quat_to_matrix
+from motok.sim.obs import cross3
 
 BOX = 6  # mujoco.mjtGeom.mjGEOM_BOX
 TOLERANCE = 0.01  # m above the floor that still counts as touching (the kinematic measure's 1 cm)
@@ -60,6 +66,36 @@ def soles(hum) -> Soles:
     if not joints:
         raise ValueError("the humanoid has no box geoms: nothing to measure sole slip on")
     return Soles(np.asarray(joints), np.concatenate(offsets))
+
+
+def foot_corners(sole: Soles, skeleton) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of ``sole``'s corners on the left and on the right foot (the corners of the bodies
+    ``skeleton.feet_left`` / ``feet_right``: ankle and toes)."""
+    out = tuple(np.flatnonzero(np.isin(sole.joint, list(f))) for f in (skeleton.feet_left, skeleton.feet_right))
+    if not all(len(f) for f in out):
+        raise ValueError("a foot of the humanoid has no box geom: no sole to describe")
+    return out
+
+
+def sole_state(sole: Soles, feet, pos, rot, vel, angvel):
+    """``(..., 2 len(feet))``: for each foot (corner indices ``feet``, :func:`foot_corners`), the
+    height above the floor (m, MuJoCo's z) of its lowest corner, then that corner's horizontal speed
+    (m/s), from body positions ``(..., J, 3)``, rotations ``(..., J, 3, 3)``, linear and angular
+    velocities (world frame; numpy or torch). A corner's velocity is its body's linear velocity plus
+    ``angvel x (R offset)``: a state's own quantities, so a transition's two states each carry
+    theirs, and the corner that touches while a foot rolls over an edge moves at nothing."""
+    x = xp(pos)
+    j = like(pos, sole.joint) if x is not np else sole.joint
+    r = x.einsum("...kij,kj->...ki", rot[..., j, :, :], like(pos, sole.offset))
+    height = pos[..., j, 2] + r[..., 2]
+    v = vel[..., j, :] + cross3(angvel[..., j, :], r)
+    speed = x.hypot(v[..., 0], v[..., 1])
+    out = []
+    for f in feet:
+        f = like(pos, f) if x is not np else f
+        low = height[..., f].argmin(-1)[..., None]  # the foot's lowest corner
+        out += [take_along(height[..., f], low, -1)[..., 0], take_along(speed[..., f], low, -1)[..., 0]]
+    return x.stack(out, -1)
 
 
 @dataclass

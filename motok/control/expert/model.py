@@ -41,6 +41,9 @@ class ExpertConfig:
     iterations: In[int, ">= 1"] = 1000
     w_im: In[float, ">= 0"] = 0.5  # weight of the imitation reward r_im (Eq. 10)
     w_style: In[float, ">= 0"] = 0.5  # weight of AMP's style reward r_style (Eq. 11); 0 also turns AMP off
+    # weight of the action-rate term r_action_rate = -mean_j (a_t - a_(t-1))^2, added to the reward
+    # (docs/sim.md "Feet"); 0, the paper's reward, leaves it out
+    w_action_rate: In[float, ">= 0"] = 0.0
     save_every: In[int, ">= 1"] = 50  # iterations between checkpoints (every one resumes exactly)
     eval_every: In[int, ">= 0"] = 0  # iterations between `evaluate` passes logged as eval_* metrics (0: never)
     eval_per_group: In[int, ">= 0"] = 0  # eval_* on this many clips per content x style (0: every training clip)

@@ -4,7 +4,9 @@
 * ``r_im``, Eq. 10, the product form of ``motok.control.mdp.rewards`` (the imitation task's
   reward, ``motok.control.tasks.imitation``);
 * ``r_style``, Eq. 11: the AMP discriminator of ``motok.control.rl.amp``, a reward hook of the
-  rollout collector.
+  rollout collector (with ``amp.feet`` it also sees the soles);
+* with ``w_action_rate > 0`` (not in the paper; 0 by default) the additive smoothness term
+  ``w_action_rate r_action_rate`` (``motok.control.mdp.rewards.action_rate``).
 
 The trainer only composes parts: physics (``HumanoidEnv``), the imitation task, the action map
 (residual PD targets), the encoder-decoder policy (``motok.control.expert.model``), the collector
@@ -30,7 +32,7 @@ from motok.control.expert.model import KIND, ExpertConfig, build_actor_critic
 from motok.control.mdp.actions import ActionConfig, pd_targets
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.rl import runner
-from motok.control.rl.amp import AMP, AMPHook, reference_observations
+from motok.control.rl.amp import AMP, AMPHook, SoleObservation, reference_observations
 from motok.control.rl.ppo import PPO
 from motok.control.rl.rollout import Collector
 from motok.control.rl.sampling import DifficultySampler, failures
@@ -79,10 +81,12 @@ class ExpertTrainer:
         self.ac = build_actor_critic(cfg.net, m.obs_dim, m.goal_dim, m.action_dim).to(device)
         self.ppo = PPO(self.ac, cfg.ppo, cfg.iterations)
         use_amp = cfg.amp.enabled and cfg.w_style != 0
-        self.amp = AMP(cfg.amp, reference_observations(lib, m.env.end_effectors), lib.starts, device) \
+        sole = SoleObservation(hum) if use_amp and cfg.amp.feet else None  # the discriminator sees the soles
+        self.amp = AMP(cfg.amp, reference_observations(lib, m.env.end_effectors, sole), lib.starts, device) \
             if use_amp else None
         hooks = (AMPHook(self.amp, cfg.w_style, self.amp_rng),) if self.amp else ()
-        self.collector = Collector(self.mdps, self.ac, cfg.ppo.horizon, cfg.w_im, hooks)
+        self.collector = Collector(self.mdps, self.ac, cfg.ppo.horizon, cfg.w_im, hooks,
+                                   action_rate=cfg.w_action_rate, hook_obs=sole)
         self.samples_per_iteration = cfg.ppo.horizon * self.collector.num_envs * d.world
         self.iteration, self.samples, self.wall = 0, 0, 0.0
         self.dist = d
@@ -165,6 +169,8 @@ class ExpertTrainer:
                            "actuators": list(hum.layout.hinge_names), "ctrl_range": m.actuator_ctrlrange.tolist()},
                 "observation": "Eq. 7 s (heading frame) then Eq. 9 goal, normalised by ac.norm.{mean,var,count}",
                 "normaliser": ["ac.norm.mean", "ac.norm.var", "ac.norm.count"], "control_hz": e.control_hz,
+                # the discriminator's input per state: Eq. 7, plus 4 with amp.feet (0: no discriminator)
+                "amp_obs_dim": int(self.amp.ref.shape[1]) if self.amp is not None else 0,
                 "clips": list(self.lib.names)}
 
 
@@ -186,6 +192,10 @@ def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resum
         meta, start, ihum = runs.load_run(init, KIND)
         if runs.mjcf_hash(ihum) != runs.mjcf_hash(hum):
             raise UserError(f"--init {init}: that expert was trained on another humanoid (MJCF hash differs)")
+        saw = bool(meta["config"].get("amp", {}).get("feet", False))
+        if "disc.mean" in start and saw != cfg.amp.feet:
+            raise UserError(f"--init {init}: its discriminator was trained with amp.feet={str(saw).lower()}, this "
+                            f"recipe has amp.feet={str(cfg.amp.feet).lower()} (another input size); set it to match")
         extra = runs.link_record("init", init, KIND)
 
     def make(d: Dist) -> ExpertTrainer:

@@ -11,6 +11,14 @@
   ``e_feet`` the mean over the foot bodies (ankles and toes) of their squared linear velocity error
   ((m/s)^2): a planted reference foot then asks the simulated one to hold still, which the
   position terms barely see (a foot sliding 20 cm/s is 7 mm off after one control step).
+* :func:`action_rate`, an optional smoothness term (not in the paper): ``e_rate`` the mean over
+  action dimensions of ``(a_t - a_(t-1))^2``, the change of the policy's action between control
+  steps, as legged-robot RL penalises it (legged_gym's and Isaac Lab's ``action_rate``, which sum
+  over joints; the mean keeps one weight meaningful for any number of joints). The expert *adds*
+  ``w_action_rate r_action_rate``, ``r_action_rate = -e_rate``, to its reward (``ExpertConfig``):
+  a factor in the product would make every jerk cost the whole imitation reward, which is what
+  slowed learning under ``k_feet`` (docs/sim.md "Feet"). An episode's first action has no
+  predecessor in that episode and costs nothing.
 * The style reward (Eq. 11) is a learned term: ``motok.control.rl.amp``.
 """
 
@@ -65,3 +73,12 @@ def imitation_reward(err: dict, cfg: ImitationConfig) -> dict:
         r["r_feet"] = x.exp(-cfg.k_feet * err["feet"])
         r["r_im"] = r["r_im"] * r["r_feet"]
     return r
+
+
+def action_rate(a, a_prev, fresh):
+    """``e_rate`` ``(N,)``: the mean over action dimensions of ``(a - a_prev)^2``, 0 where ``fresh``
+    (the environment's first step of an episode: ``a_prev`` belongs to the one before) and where an
+    action is not finite (an invalid action ends its episode; it must not poison the return)."""
+    x = xp(a)
+    e = ((a - a_prev) ** 2).mean(-1)
+    return x.where(fresh | ~x.isfinite(e), x.zeros_like(e), e)

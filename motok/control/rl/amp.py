@@ -14,6 +14,14 @@ the discriminator takes the policy's transition for reference data. **Convention
 paper's text says the discriminator outputs 1 for the *agent*, but with that labelling
 ``-log(1 - D)`` would reward looking *unlike* the data; the formula only makes sense with 1 for
 reference data, which is AMP's (and ASE's) convention and the one implemented here.
+
+**The feet** (``AMPConfig.feet``, off by default: the paper's discriminator sees Eq. 7 alone).
+Eq. 7 holds no foot height and no world-frame speed, so a sole sliding along the floor looks
+like a planted one to the discriminator. With ``feet`` each state of a transition, simulated
+and reference alike, is Eq. 7 followed by :class:`SoleObservation`: per foot, the lowest sole
+corner's height above the floor and its horizontal speed (``motok.sim.soles.sole_state``, one
+function for both). The discriminator's input grows by 4 per state (2 per foot), recorded in
+the run's spec (``amp_obs_dim``); a resume with the other setting is refused like any change.
 """
 
 from __future__ import annotations
@@ -25,10 +33,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from motok.arrays import xp
 from motok.control.rl.networks import mlp
 from motok.distributed import average_gradients, world_size
 from motok.ranges import In
+from motok.rotations import quat_to_matrix
 from motok.sim.obs import Bodies, observation
+from motok.sim.soles import foot_corners, sole_state, soles
 
 
 @dataclass
@@ -44,6 +55,9 @@ class AMPConfig:
     updates: In[int, ">= 0"] = 8  # discriminator minibatches per PPO iteration
     replay_size: In[int, ">= 1"] = 100_000  # older policy transitions kept, so the discriminator does not forget
     style_scale: In[float, ">= 0"] = 5.0  # r_style = -style_scale log(1 - D)
+    # true: each state the discriminator sees is Eq. 7 and, per foot, the lowest sole corner's height
+    # and horizontal speed (SoleObservation; docs/sim.md "Feet"); false: Eq. 7 alone, the paper's
+    feet: bool = False
 
 
 def gradient_penalty(logit_fn, x_ref: torch.Tensor) -> torch.Tensor:
@@ -178,10 +192,39 @@ class AMP:
         return stats
 
 
-def reference_observations(lib, end_effectors) -> np.ndarray:
-    """Eq. 7 observation of every frame of a reference library: the discriminator's reference samples."""
+class SoleObservation:
+    """The soles as the discriminator sees them with ``AMPConfig.feet``: :meth:`of` appends to Eq. 7
+    observations ``(N, D)`` the :func:`~motok.sim.soles.sole_state` of the same states; called as
+    ``(mdp, obs)`` it is the collector's ``hook_obs`` (the simulated bodies of ``mdp.env``)."""
+
+    def __init__(self, hum):
+        self.sole = soles(hum)
+        self.feet = foot_corners(self.sole, hum.skeleton)
+
+    def of(self, obs, bodies: Bodies):
+        f = sole_state(self.sole, self.feet, bodies.pos, bodies.rot, bodies.vel, bodies.angvel)
+        return xp(obs).concatenate([obs, f], -1)
+
+    def __call__(self, mdp, obs):
+        return self.of(obs, mdp.env.bodies)
+
+    def reference(self, lib, chunk: int = 65536) -> np.ndarray:
+        """``(F, 2 x feet)`` of every library frame, in chunks: the rotation matrices of a whole
+        dataset's bodies would not fit in memory at once."""
+        out = []
+        for a in range(0, len(lib.body_pos), chunk):
+            sl = slice(a, a + chunk)
+            out.append(sole_state(self.sole, self.feet, lib.body_pos[sl], quat_to_matrix(lib.body_quat[sl]),
+                                  lib.body_vel[sl], lib.body_angvel[sl]))
+        return np.concatenate(out) if out else np.zeros((0, 2 * len(self.feet)))
+
+
+def reference_observations(lib, end_effectors, sole: SoleObservation | None = None) -> np.ndarray:
+    """Eq. 7 observation of every frame of a reference library: the discriminator's reference
+    samples; with ``sole`` followed by the frame's soles (``AMPConfig.feet``)."""
     bodies = Bodies(lib.body_pos, lib.body_vel, lib.body_angvel, quat=lib.body_quat)
-    return observation(lib.qpos, lib.qvel, bodies, end_effectors)
+    obs = observation(lib.qpos, lib.qvel, bodies, end_effectors)
+    return obs if sole is None else np.concatenate([obs, sole.reference(lib)], -1)
 
 
 class AMPHook:

@@ -7,7 +7,11 @@ episode's final observation is valued *before* its reset so GAE can bootstrap it
 
 The reward is ``w_task r_task + sum_h w_h r_h``: ``r_task`` the task's main term
 (``task.reward_key``), ``r_h`` the terms of learned reward hooks such as AMP's style reward,
-computed on the stored transitions ``(s, s')`` after the rollout and then trained on them.
+computed on the stored transitions ``(s, s')`` after the rollout and then trained on them, plus,
+with ``action_rate`` (its weight) > 0, ``action_rate * r_action_rate``, the change of the
+action between consecutive steps of an episode (``motok.control.mdp.rewards.action_rate``).
+The hooks' transitions are the Eq. 7 observations unless ``hook_obs(mdp, obs)`` extends them
+(AMP's discriminator seeing the soles, ``motok.control.rl.amp.with_soles``).
 Episode statistics (return, main reward per step, length, share truncated rather than
 terminated) are kept across iterations per environment. ``update_hooks`` then trains the hooks
 on the stored transitions.
@@ -23,6 +27,7 @@ import torch
 
 from motok.arrays import xp
 from motok.control.rl.networks import ActorCritic
+from motok.control.mdp.rewards import action_rate
 from motok.control.mdp.task_env import TaskEnv
 from motok.errors import UserError
 
@@ -120,9 +125,13 @@ class Collector:
     timing, so ``threaded=False`` gives exactly the same transitions (tested)."""
 
     def __init__(self, mdps: TaskEnv | list[TaskEnv], ac: ActorCritic, horizon: int, task_weight: float = 1.0,
-                 hooks: tuple[RewardHook, ...] = (), threaded: bool = True):
+                 hooks: tuple[RewardHook, ...] = (), threaded: bool = True, action_rate: float = 0.0,
+                 hook_obs=None):
         self.mdps = [mdps] if isinstance(mdps, TaskEnv) else list(mdps)
         self.ac, self.horizon, self.task_weight, self.hooks = ac, horizon, task_weight, tuple(hooks)
+        self.w_rate, self.hook_obs = action_rate, hook_obs
+        if action_rate and not ac.policy.action_dtype.is_floating_point:
+            raise UserError("action_rate penalises the change of continuous actions; this policy's are indices")
         self.threaded = threaded and len(self.mdps) > 1
         first = self.mdps[0]
         # On the device (env.on_device): observations, actions, rewards and buffers stay there.
@@ -135,13 +144,21 @@ class Collector:
         self.offsets = np.cumsum([0] + [m.num_envs for m in self.mdps])
         self.num_envs = int(self.offsets[-1])
 
+    def _hook_state(self, g: int, obs):
+        """What the reward hooks see of group ``g``'s current state: the Eq. 7 ``obs`` or its extension."""
+        return obs if self.hook_obs is None else self.hook_obs(self.mdps[g], obs)
+
     def start(self) -> None:
         self.obs, self.goal = [], []
         for m in self.mdps:
             o, g = m.reset()
             self.obs.append(o)
             self.goal.append(g)
+        self.hobs = [self._hook_state(g, o) for g, o in enumerate(self.obs)]
         self.episodes = Episodes.empty(self.num_envs, self.device)
+        if self.w_rate:  # the last action of every environment, and whether its episode has none yet
+            self.last_action = torch.zeros(self.num_envs, *self.ac.policy.action_shape, device=self.device)
+            self.fresh = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
 
     def _input(self, obs, goal) -> torch.Tensor:
         return as_tensor(xp(obs).concatenate([obs, goal], 1))
@@ -152,6 +169,9 @@ class Collector:
         self.ac.norm.update(x)
         xn, a, logp, v = self.ac.act(x)
         ro.x[t, cols], ro.actions[t, cols], ro.logp[t, cols], ro.values[t, cols] = xn, a, logp, v
+        if self.w_rate:
+            self.rate[t, cols] = action_rate(a, self.last_action[cols], self.fresh[cols])
+            self.last_action[cols], self.fresh[cols] = a, False
         self.mdps[g].launch(a if self.on_device else a.numpy(), self.threaded)
 
     def _record(self, g: int, t: int, ro: Rollout, main, s, s2) -> None:
@@ -160,7 +180,9 @@ class Collector:
         main[t, cols] = torch.as_tensor(rewards[self.key])
         ro.terminated[t, cols], ro.truncated[t, cols] = torch.as_tensor(term), torch.as_tensor(trunc)
         if s is not None:
-            s[t, cols], s2[t, cols] = as_tensor(self.obs[g]), as_tensor(obs)
+            s[t, cols], s2[t, cols] = as_tensor(self.hobs[g]), as_tensor(self._hook_state(g, obs))
+        if self.w_rate:  # a finished episode restarts below: its next action has no predecessor
+            self.fresh[cols] |= torch.as_tensor(term | trunc, device=self.fresh.device)
         # Bootstrapping needs the value of a truncated episode's final observation, before the reset.
         if self.on_device:  # every row's value, kept where truncated: no host read of the mask
             with torch.no_grad():
@@ -171,15 +193,19 @@ class Collector:
                 xf = self.ac.norm(self._input(obs[trunc], goal[trunc]))
                 ro.final_values[t, torch.from_numpy(np.flatnonzero(trunc) + self.offsets[g])] = self.ac.value(xf)
         self.obs[g], self.goal[g] = mdp.restart_done(term | trunc, obs, goal)
+        if s is not None:
+            self.hobs[g] = self._hook_state(g, self.obs[g])
 
     def collect(self) -> tuple[Rollout, torch.Tensor, dict]:
         ac, T, N, G = self.ac, self.horizon, self.num_envs, len(self.mdps)
         pol = ac.policy
         ro = Rollout(T, N, self.obs_dim + self.goal_dim, pol.action_shape, pol.action_dtype, self.device)
         keep = bool(self.hooks)
-        s = torch.zeros(T, N, self.obs_dim, device=self.device) if keep else None
-        s2 = torch.zeros(T, N, self.obs_dim, device=self.device) if keep else None
+        h_dim = self.hobs[0].shape[1]  # obs_dim, or more when hook_obs extends it
+        s = torch.zeros(T, N, h_dim, device=self.device) if keep else None
+        s2 = torch.zeros(T, N, h_dim, device=self.device) if keep else None
         main = torch.zeros(T, N, device=self.device)
+        self.rate = torch.zeros(T, N, device=self.device) if self.w_rate else None
         in_flight: list[tuple[int, int]] = []  # (group, step) launched and not yet recorded
         for t in range(T):
             for g in range(G):
@@ -196,6 +222,9 @@ class Collector:
         ro.rewards = self.task_weight * main
         for h in self.hooks:
             ro.rewards = ro.rewards + h.weight * terms[h.name]
+        if self.w_rate:
+            terms["r_action_rate"] = -self.rate
+            ro.rewards = ro.rewards + self.w_rate * terms["r_action_rate"]
         stats = self.episodes.add(ro, main, self.key, self.dt)
         stats.update({self.key: float(main.mean()), **{k: float(v.mean()) for k, v in terms.items()},
                       "reward": float(ro.rewards.mean())})

@@ -1,0 +1,230 @@
+"""The levers against sliding feet that are options of the expert (docs/sim.md "Feet"): the
+action-rate term, the discriminator seeing the soles, and a higher control rate."""
+
+from __future__ import annotations
+
+import json
+from functools import partial
+
+import numpy as np
+import pytest
+import torch
+
+from motok.control.mdp.actions import ActionConfig, pd_targets
+from motok.control.mdp.rewards import action_rate
+from motok.control.mdp.task_env import TaskEnv
+from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
+from motok.sim.env import HumanoidEnv, SimConfig
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+# ---------------------------------------------------------------------- action rate
+
+
+def test_action_rate_is_the_mean_squared_change_and_nothing_on_an_episodes_first_step():
+    a_prev = np.array([[0.0, 0.0, 0.0], [1.0, -1.0, 0.5], [0.2, 0.2, 0.2]])
+    a = np.array([[0.3, 0.0, -0.3], [1.0, -1.0, 0.5], [0.0, 0.0, 0.0]])
+    e = action_rate(a, a_prev, np.array([False, False, True]))
+    np.testing.assert_allclose(e, [(0.09 + 0.09) / 3, 0.0, 0.0])  # the third env starts an episode
+    bad = a.copy()
+    bad[1, 2] = np.nan
+    assert action_rate(bad, a_prev, np.zeros(3, bool))[1] == 0.0  # an invalid action: no NaN in the return
+    t = action_rate(torch.tensor(a), torch.tensor(a_prev), torch.tensor([False, False, True]))
+    np.testing.assert_allclose(t.numpy(), [0.06, 0.0, 0.0])
+
+
+class Scripted:
+    """An actor-critic whose action at step ``t`` is ``level[t] * (1 + j / A)`` on joint ``j`` (plus
+    ``0.01 n`` for environment ``n``), with a real normaliser: the collector's reward is then known."""
+
+    def __init__(self, ac, level):
+        self.norm, self.policy, self.level, self.t = ac.norm, ac.policy, level, 0
+
+    def act(self, x):
+        N, A = len(x), self.policy.action_shape[0]
+        a = self.level[self.t] * (1 + torch.arange(A) / A)[None] + 0.01 * torch.arange(N)[:, None]
+        self.t += 1
+        return self.norm(x), a.float(), torch.zeros(N), torch.zeros(N)
+
+    def value(self, x):
+        return torch.zeros(len(x))
+
+
+def test_the_collector_adds_the_action_rate_term_and_forgets_the_last_episodes_action(hum, lib):
+    """Episodes of 2 control steps (``max_episode_seconds`` 2/30): the term is 0 on every episode's
+    first step, even where the scripted action jumps across the reset, and
+    ``-mean_j (a_t - a_(t-1))^2`` inside an episode; the rollout's reward is the same run's without
+    it, minus ``w_action_rate`` times it, on the same physics."""
+    from motok.control.expert.model import NetConfig, build_actor_critic
+    from motok.control.rl.rollout import Collector
+
+    level = [0.0, 0.1, 0.5, 0.2, -0.1, 0.3]
+    out = {}
+    for w in (0.0, 2.0):
+        env = HumanoidEnv(hum, SimConfig(num_envs=3))
+        task = ImitationTask(ImitationTaskConfig(max_episode_seconds=2 / 30, early_termination=False), env, lib,
+                             np.random.default_rng(3))
+        mdp = TaskEnv(env, task, partial(pd_targets, ActionConfig(base="reference", scale=0.05)))
+        torch.manual_seed(0)
+        ac = Scripted(build_actor_critic(NetConfig(encoder=[8], decoder=[8], value=[8]), mdp.obs_dim, mdp.goal_dim,
+                                         mdp.action_dim), level)
+        col = Collector(mdp, ac, len(level), task_weight=0.5, action_rate=w)
+        col.start()
+        out[w] = col.collect()
+    (ro, _, stats), (ro0, _, stats0) = out[2.0], out[0.0]
+    done = (ro.terminated | ro.truncated).numpy()
+    assert done[1].all() and done[3].all() and not done[2].any()  # episodes of exactly two steps
+    A = hum.model.nu
+    shape = 1 + np.arange(A) / A
+    want = np.zeros((len(level), 3))
+    for t in range(1, len(level)):
+        if not done[t - 1, 0]:
+            want[t] = np.mean(((level[t] - level[t - 1]) * shape) ** 2)
+    assert want[1, 0] > 0 and want[2, 0] == 0  # a jump of 0.4 across the reset costs nothing
+    np.testing.assert_allclose(ro.rewards.numpy(), ro0.rewards.numpy() - 2.0 * want, rtol=1e-5, atol=1e-6)
+    assert stats["r_action_rate"] == pytest.approx(-want.mean(), rel=1e-5)
+    assert "r_action_rate" not in stats0  # off by default: the paper's reward, unchanged
+
+
+# ---------------------------------------------------------------------- the discriminator sees the soles
+
+
+def test_the_soles_of_a_reference_frame_survive_the_round_trip_through_mujoco(hum, lib):
+    """Reference frames put into MuJoCo as qpos/qvel: the discriminator's whole observation of the
+    simulated state (Eq. 7 and the soles) equals the one computed from the library's frame."""
+    from motok.control.rl.amp import SoleObservation, reference_observations
+
+    sole = SoleObservation(hum)
+    g = np.array([lib.starts[0] + 10, lib.starts[0] + 40, lib.starts[1] + 7, lib.starts[2] + 25])
+    env = HumanoidEnv(hum, SimConfig(num_envs=len(g)))
+    env.set_state(np.arange(len(g)), lib.qpos[g], lib.qvel[g])
+    ref = reference_observations(lib, env.end_effectors, sole)
+    sim = sole.of(env.observation(), env.bodies)
+    assert ref.shape[1] == env.obs_dim + 4 and sim.shape == (len(g), env.obs_dim + 4)
+    np.testing.assert_allclose(sim, ref[g], atol=1e-6)
+    feet = ref[:, -4:]
+    assert feet[:, [1, 3]].max() > 0.5 and feet[:, [0, 2]].min() < 0.02  # walking: a swinging foot, a planted one
+
+
+def test_a_foot_sliding_at_a_known_speed_gives_that_speed(hum, lib):
+    """A real standing frame in MuJoCo moving as a rigid body: translating at (0.3, 0.4) m/s every
+    sole slides at 0.5 m/s; turning about the vertical at 2 rad/s each foot's lowest corner moves at
+    2 rad/s times its horizontal distance from the root. Heights are the lowest corners' (computed
+    here from the body quaternions, another path)."""
+    from motok.sim.soles import foot_corners, reference_corners, sole_state, soles
+
+    sole = soles(hum)
+    feet = foot_corners(sole, hum.skeleton)
+    q = lib.qpos[lib.starts[0]][None].copy()
+    env = HumanoidEnv(hum, SimConfig(num_envs=1))
+    qv = np.zeros((1, hum.nv))
+    qv[0, :3] = [0.3, 0.4, 0.0]
+    env.set_state([0], q, qv)
+    b = env.bodies
+    f = sole_state(sole, feet, b.pos, b.rot, b.vel, b.angvel)[0]
+    corners = reference_corners(sole, b.pos, b.quat)[0]
+    np.testing.assert_allclose(f[[0, 2]], [corners[feet[0], 2].min(), corners[feet[1], 2].min()], atol=1e-9)
+    np.testing.assert_allclose(f[[1, 3]], [0.5, 0.5], atol=1e-9)
+
+    R = b.rot[0, 0]  # the free joint's angular velocity is in the root's frame
+    qv[0, :3], qv[0, 3:6] = 0.0, R.T @ [0.0, 0.0, 2.0]
+    env.set_state([0], q, qv)
+    b = env.bodies
+    f = sole_state(sole, feet, b.pos, b.rot, b.vel, b.angvel)[0]
+    for k, idx in enumerate(feet):
+        low = corners[idx[np.argmin(corners[idx, 2])]]
+        assert f[2 * k + 1] == pytest.approx(2.0 * np.hypot(*(low[:2] - b.pos[0, 0, :2])), rel=1e-6)
+
+
+def test_amp_feet_is_recorded_and_a_resume_with_the_other_setting_is_refused(small_dataset, tmp_path):
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+    from motok.config import from_dict, to_dict
+    from motok.control.expert.model import ExpertConfig
+
+    run = tmp_path / "expert"
+    args = ["--quiet", "control", "expert", "train", "-d", str(small_dataset), "--clips", "dataset-2_walk_normal_001",
+            "--set", "env.num_envs=4", "--set", "ppo.horizon=4", "--set", "ppo.minibatch_size=16",
+            "--set", "amp.batch_size=8", "--set", "iterations=2", "-o", str(run)]
+    r = CliRunner().invoke(app, [*args, "--set", "amp.feet=true", "--set", "w_action_rate=1.0", "--until", "1"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((run / "bundle.json").read_text())
+    assert meta["config"]["amp"]["feet"] is True and meta["extra"]["amp_obs_dim"] == meta["extra"]["obs_dim"] + 4
+    r = CliRunner().invoke(app, [*args, "--set", "amp.feet=false", "--resume"])
+    assert r.exit_code == 2 and "amp.feet True -> False" in r.output, r.output
+    r = CliRunner().invoke(app, [*args, "--resume"])  # the run's own settings: goes on
+    assert r.exit_code == 0 and json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 2
+    # a config saved before these options existed loads as what it did: both off
+    old = to_dict(ExpertConfig())
+    del old["w_action_rate"], old["amp"]["feet"]
+    cfg = from_dict(ExpertConfig, old)
+    assert cfg.w_action_rate == 0.0 and cfg.amp.feet is False
+
+
+# ---------------------------------------------------------------------- 60 Hz
+
+
+@pytest.fixture(scope="module")
+def libs(hum, small_dataset):
+    from motok.sim.reference import build_library
+
+    clips = ["dataset-2_walk_normal_001"]
+    return {hz: build_library(hum, small_dataset, hz, clips) for hz in (30.0, 60.0)}
+
+
+def test_a_60hz_reference_is_the_clip_at_real_speed_interpolated_between_its_frames(hum, small_dataset, libs):
+    """The library at 60 Hz holds the 30 Hz one's states at every other frame (the same instants),
+    and its frames between are the source clip (20 fps) interpolated at their own time: the root
+    linearly, its rotation along the great arc (its angle to each neighbour in proportion)."""
+    from motok.data.dataset import MotionFile
+    from motok.sim.humanoid import to_mj
+    from motok.sim.retarget import solve_locals
+
+    l30, l60 = libs[30.0], libs[60.0]
+    n30 = l30.lengths[0]
+    np.testing.assert_allclose(l60.body_pos[0:2 * n30 - 1:2], l30.body_pos[:n30], atol=1e-9)
+    np.testing.assert_allclose(l60.qpos[0:2 * n30 - 1:2, :3], l30.qpos[:n30, :3], atol=1e-12)
+    with MotionFile(small_dataset) as mf:
+        fps, j = mf.fps, np.asarray(mf.frames("joints", mf.index("dataset-2_walk_normal_001")), np.float64)
+    src_root, src_q = to_mj(j[:, 0]), solve_locals(to_mj(j), hum.layout)[:, 0]
+    checked = 0
+    for k in range(1, l60.lengths[0] - 1, 2):  # the frames the 30 Hz library has no counterpart of
+        s = k / 60.0 * fps
+        i, u = int(np.floor(s)), s - np.floor(s)
+        if u < 1e-9:
+            continue
+        np.testing.assert_allclose(l60.qpos[k, :3], (1 - u) * src_root[i] + u * src_root[i + 1], atol=1e-12)
+        ang = lambda a, b: 2 * np.arccos(min(1.0, abs(float(np.dot(a, b)))))  # noqa: E731
+        q, qa, qb = l60.qpos[k, 3:7], src_q[i], src_q[i + 1]
+        assert ang(q, qa) == pytest.approx(u * ang(qa, qb), abs=1e-6)
+        assert ang(q, qb) == pytest.approx((1 - u) * ang(qa, qb), abs=1e-6)
+        checked += 1
+    assert checked > 20
+
+
+def test_a_60hz_episode_covers_the_same_clip_seconds_as_a_30hz_one(hum, libs):
+    """The same clip from frame 0 to its end at both rates: twice the steps at half the step, so the
+    same seconds of the clip (up to the goal's one frame ahead at each rate), and the reference
+    reached after 2k steps at 60 Hz is the one reached after k steps at 30 Hz."""
+    seconds, refs = {}, {}
+    for hz, lib in libs.items():
+        env = HumanoidEnv(hum, SimConfig(num_envs=1, control_hz=hz))
+        assert env.substeps == round(120 / hz)
+        task = ImitationTask(ImitationTaskConfig(early_termination=False), env, lib, np.random.default_rng(0))
+        mdp = TaskEnv(env, task, partial(pd_targets, ActionConfig(base="reference")))
+        mdp.reset(clips=[0], frames=0)
+        steps, pos = 0, [task.reference(task.clip[:, None], task.frame[:, None]).pos[0, 0]]
+        while True:
+            *_, term, trunc, _ = mdp.step(np.zeros((1, env.action_dim)))
+            steps += 1
+            pos.append(task.reference(task.clip[:, None], task.frame[:, None]).pos[0, 0])
+            if term[0] or trunc[0]:
+                break
+        seconds[hz], refs[hz] = steps / hz, np.stack(pos)
+    clip_seconds = (libs[30.0].lengths[0] - 1) / 30.0
+    assert seconds[30.0] == pytest.approx(clip_seconds - 1 / 30)  # the goal looks K = 1 frame ahead
+    assert abs(seconds[60.0] - seconds[30.0]) <= 1 / 30 + 1e-9
+    n = len(refs[30.0])
+    np.testing.assert_allclose(refs[60.0][0:2 * n - 1:2], refs[30.0], atol=1e-9)

@@ -22,8 +22,18 @@ then steps exactly those (state, control) pairs with ``mujoco.rollout`` for one 
   from 128 random reference states.
 
     .venv/bin/python benchmarks/physics.py [--data runs/bandai2.h5] [--repeats 4] [--more]
+    .venv/bin/python benchmarks/physics.py --feet [--rates 30,60]
 
 Takes about 70 s on 2 cores (``--more`` adds the elliptic cone and the CG solver).
+
+A lever can change what a second of motion costs without changing a step's cost: ``--feet`` also
+prints each world's CPU milliseconds of physics per simulated second (``ms/sim-s``: the timestep
+sets how many mj_step a second takes), and for each control rate of ``--rates`` the cost of a
+second of motion through the whole control step: the imitation MDP (physics, Eq. 7, Eq. 9,
+Eq. 10, resets) and a forward pass of the expert recipe's policy, for PD tracking of the 24 walks
+with restarts. At 60 Hz a second holds twice the control steps, each of half the substeps: the
+physics per second stays, while everything done per control step (observation, goal, reward,
+policy, and in training the PPO update per sample) doubles.
 """
 
 from __future__ import annotations
@@ -185,12 +195,43 @@ def tracking_positions(hum, lib, starts, steps: int = 30) -> np.ndarray:
     return np.stack(out, 1)
 
 
+def control_rate_cost(hum, data: Path, clips: list[str], hz: float, seconds: float = 4.0) -> dict:
+    """CPU seconds per simulated second of PD tracking through the imitation MDP at ``hz``, with a
+    forward pass of the expert recipe's policy every control step (its actions unused: PD tracking
+    keeps the states the same whatever the network's weights), fallen environments restarted."""
+    import torch
+
+    from motok.config import load_config
+    from motok.control.expert.model import ExpertConfig, build_actor_critic
+
+    net = load_config(ExpertConfig, Path(__file__).parents[1] / "recipes/control/expert.yaml").net
+    with tempfile.TemporaryDirectory() as tmp:
+        lib = load_library(hum, data, control_hz=hz, clips=clips, cache_dir=tmp)
+    mdp = imitation_mdp(hum, lib, SimConfig(num_envs=len(clips), nthread=1, control_hz=hz), ImitationTaskConfig(),
+                        ActionConfig("reference"), 0)
+    ac = build_actor_critic(net, mdp.obs_dim, mdp.goal_dim, mdp.action_dim)
+    obs, goal = mdp.reset()
+    steps = int(round(seconds * hz))
+    zero = np.zeros((mdp.num_envs, mdp.action_dim))
+    t0 = time.process_time()
+    with torch.no_grad():
+        for _ in range(steps):
+            ac.act(torch.as_tensor(np.concatenate([obs, goal], 1), dtype=torch.float32))
+            obs, goal, _, term, trunc, _ = mdp.step(zero)
+            obs, goal = mdp.restart_done(term | trunc, obs, goal)
+    cpu = time.process_time() - t0
+    return {"hz": hz, "substeps": mdp.env.substeps, "steps_per_s": hz,
+            "cpu_ms_per_sim_s": 1e3 * cpu / (seconds * mdp.num_envs)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("runs/bandai2.h5"), help="Bandai-Namco set 2 motion-dataset")
     ap.add_argument("--repeats", type=int, default=4, help="rounds of rate measurements")
     ap.add_argument("--more", action="store_true", help="also the elliptic cone and the CG solver")
     ap.add_argument("--feet", action="store_true", help="the contact levers against sliding feet, against the default")
+    ap.add_argument("--rates", default="30,60", help="with --feet: the control rates (Hz) whose cost per simulated "
+                    "second of motion to measure")
     args = ap.parse_args()
     t_start = time.perf_counter()
     body = measure_humanoid(args.data)
@@ -231,6 +272,17 @@ def main() -> None:
     legs = [i for i, n in enumerate(names) if i == 0 or any(p in n for p in ("Leg", "Foot", "Toes"))]
     arms = [i for i, n in enumerate(names) if "Arm" in n or "Hand" in n]
     ref_pos = tracking_positions(hums[base], lib, starts)
+    per_s = {k: 1e3 / (np.median(cpu[k]) * h.model.opt.timestep) for k, h in hums.items()}  # ms/sim-s
+    if args.feet:
+        print(f"{'world':42s} {'ms/sim-s':>8s} (CPU ms of physics per simulated second, one thread)")
+        for k in hums:
+            print(f"{k:42s} {per_s[k]:8.1f}")
+        rates = [control_rate_cost(hums[base], args.data, groups["walk"], float(r)) for r in args.rates.split(",")]
+        print(f"{'control rate':>12s} {'substeps':>8s} {'steps/sim-s':>11s} {'CPU ms per env per sim-s':>24s} "
+              f"{'ratio':>5s}   (imitation MDP + policy forward, {len(groups['walk'])} envs)")
+        for r in rates:
+            print(f"{r['hz']:10.0f}Hz {r['substeps']:8d} {r['steps_per_s']:11.0f} {r['cpu_ms_per_sim_s']:24.1f} "
+                  f"{r['cpu_ms_per_sim_s'] / rates[0]['cpu_ms_per_sim_s']:5.2f}", flush=True)
     print(f"{'option':42s} {'cpu/s':>7s} {'ratio':>5s} {'2-thr/s':>8s} | {'foot':>4s} {'body':>4s} {'self':>4s} "
           f"{'rows':>4s} {'iter':>4s} {'max':>3s} {'cap%':>4s} {'nxn':>3s} | {'stand':>8s} {'walk s':>6s} {'rew':>5s} "
           f"{'other s':>7s} {'rew':>5s} | {'legs@10':>7s} {'@30':>5s} {'arms@10':>7s} {'@30':>5s} mm")

@@ -9,6 +9,7 @@ clips' own over the same frames. A lever's run is resumed, not redone, when the 
 a finished evaluation is read back.
 
     python scripts/foot_levers.py --until 500 base feet1 filter0.3 kv2       # one training at a time
+    python scripts/foot_levers.py --until 500 base action_rate amp_feet rate60 rate60s
     python scripts/foot_levers.py --until 500 --table                        # the table of what exists
     python scripts/foot_levers.py --pd base kv2 noslip elliptic3 filter0.3   # plain PD tracking, no training
 
@@ -45,6 +46,14 @@ LEVERS = {
     "elliptic": (["cone=elliptic", "impratio=10"], []),  # harder friction (1.7x the physics cost)
     "noslip": (["noslip_iterations=10"], []),
     "elliptic3": (["cone=elliptic", "impratio=3"], []),  # elliptic at impratio 10 diverges standing
+    # an additive penalty on the change of the action between steps, -mean_j (a_t - a_(t-1))^2; at 1 a
+    # residual chattering by 0.2 rad a step costs 0.04, a tenth of a typical step's weighted reward
+    "action_rate": ([], ["w_action_rate=1.0"]),
+    "amp_feet": ([], ["amp.feet=true"]),  # the discriminator also sees each foot's sole height and speed
+    "rate60": ([], ["env.control_hz=60"]),  # 60 control steps a second (2 substeps), every per-step setting kept
+    # 60 Hz with the per-step settings that keep their 30 Hz values per second: gamma 0.99^(1/2), lam
+    # 0.95^(1/2), the target filter's decay 0.5 per 1/30 s (1 - 0.5^(1/2)); the horizon stays 32 steps
+    "rate60s": ([], ["env.control_hz=60", "ppo.gamma=0.995", "ppo.lam=0.975", "env.target_filter=0.293"]),
 }
 
 

@@ -87,6 +87,40 @@ def test_the_collector_adds_the_action_rate_term_and_forgets_the_last_episodes_a
     assert "r_action_rate" not in stats0  # off by default: the paper's reward, unchanged
 
 
+def test_in_a_trainer_with_two_groups_each_environment_keeps_its_own_last_action_across_iterations(hum, lib):
+    """The expert with both options and two environment groups taking turns: the collector's
+    ``e_rate`` equals the one recomputed from the stored actions and episode ends, the last action
+    of one iteration carried into the next; the discriminator's transitions (Eq. 7 and the soles)
+    chain, each state the next transition's start, except where an episode restarted."""
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.train import ExpertTrainer
+
+    cfg = ExpertConfig(seed=0, save_every=1000, w_action_rate=1.0)
+    cfg.env.num_envs, cfg.env.groups, cfg.ppo.horizon, cfg.ppo.minibatch_size = 8, 2, 12, 32
+    cfg.task.max_episode_seconds = 0.2  # 6 steps: every environment restarts within an iteration
+    cfg.net.encoder = cfg.net.decoder = cfg.net.value = [16]
+    cfg.amp.hidden, cfg.amp.batch_size, cfg.amp.updates, cfg.amp.feet = [16], 16, 1, True
+    tr = ExpertTrainer(cfg, hum, lib)
+    tr.start_segment()
+    col, prev = tr.collector, None
+    for _ in range(2):
+        ro, _, stats = col.collect()
+        s, s2 = (x.view(cfg.ppo.horizon, 8, -1) for x in col._transitions)
+        a, done = ro.actions.numpy().astype(np.float64), (ro.terminated | ro.truncated).numpy()
+        before = np.concatenate([prev[0][None], a[:-1]]) if prev else np.concatenate([a[:1], a[:-1]])
+        fresh = np.concatenate([prev[1][None], done[:-1]]) if prev else np.concatenate([np.ones((1, 8), bool), done[:-1]])
+        want = np.where(fresh, 0.0, ((a - before) ** 2).mean(-1))
+        np.testing.assert_allclose(col.rate.numpy(), want, rtol=1e-5, atol=1e-9)
+        assert stats["r_action_rate"] == pytest.approx(-want.mean(), rel=1e-5) and (want > 0).any()
+        assert done.any() and s.shape[-1] == tr.mdp.obs_dim + 4
+        same = ~done[:-1]
+        np.testing.assert_array_equal(s[1:].numpy()[same], s2[:-1].numpy()[same])
+        D = tr.mdp.obs_dim  # a restarted row starts from its new episode's state, Eq. 7 and soles alike
+        assert (s[1:].numpy()[~same][:, :D] != s2[:-1].numpy()[~same][:, :D]).any(-1).all()
+        col.update_hooks()
+        prev = (a[-1], done[-1])
+
+
 # ---------------------------------------------------------------------- the discriminator sees the soles
 
 
@@ -126,6 +160,9 @@ def test_a_foot_sliding_at_a_known_speed_gives_that_speed(hum, lib):
     corners = reference_corners(sole, b.pos, b.quat)[0]
     np.testing.assert_allclose(f[[0, 2]], [corners[feet[0], 2].min(), corners[feet[1], 2].min()], atol=1e-9)
     np.testing.assert_allclose(f[[1, 3]], [0.5, 0.5], atol=1e-9)
+
+    t = sole_state(sole, feet, *(torch.as_tensor(np.ascontiguousarray(x)) for x in (b.pos, b.rot, b.vel, b.angvel)))
+    np.testing.assert_allclose(t.numpy()[0], f, atol=1e-12)  # the same numbers on tensors (a device rollout)
 
     R = b.rot[0, 0]  # the free joint's angular velocity is in the root's frame
     qv[0, :3], qv[0, 3:6] = 0.0, R.T @ [0.0, 0.0, 2.0]
@@ -228,3 +265,30 @@ def test_a_60hz_episode_covers_the_same_clip_seconds_as_a_30hz_one(hum, libs):
     assert abs(seconds[60.0] - seconds[30.0]) <= 1 / 30 + 1e-9
     n = len(refs[30.0])
     np.testing.assert_allclose(refs[60.0][0:2 * n - 1:2], refs[30.0], atol=1e-9)
+
+
+# ---------------------------------------------------------------------- the ranking script
+
+
+def test_every_lever_of_the_ranking_script_is_a_valid_change_of_the_recipe(script):
+    """``scripts/foot_levers.py``'s levers load into the expert's and the humanoid's configs (a
+    misspelt key would only fail hours into a ranking), and ``rate60s`` keeps per second what the
+    30 Hz settings do per 1/30 s: discount, GAE lambda and the target filter's decay."""
+    from pathlib import Path
+
+    from motok.config import load_config
+    from motok.control.expert.model import ExpertConfig
+    from motok.sim.humanoid import HumanoidConfig
+
+    fl = script("foot_levers")
+    recipe = Path(__file__).parents[1] / "recipes/control/expert.yaml"
+    cfgs = {n: load_config(ExpertConfig, recipe, fl.BASE_SETS + sets) for n, (_, sets) in fl.LEVERS.items()}
+    for hum_sets, _ in fl.LEVERS.values():
+        load_config(HumanoidConfig, None, hum_sets)
+    base, r60, r60s = cfgs["base"], cfgs["rate60"], cfgs["rate60s"]
+    assert (base.w_action_rate, base.amp.feet, base.env.control_hz) == (0.0, False, None)
+    assert cfgs["action_rate"].w_action_rate > 0 and cfgs["amp_feet"].amp.feet is True
+    assert r60.env.control_hz == 60 and r60.ppo.gamma == base.ppo.gamma
+    assert r60s.ppo.gamma ** 2 == pytest.approx(base.ppo.gamma, abs=1e-4)
+    assert r60s.ppo.lam ** 2 == pytest.approx(base.ppo.lam, abs=1e-3)
+    assert (1 - r60s.env.target_filter) ** 2 == pytest.approx(1 - base.env.target_filter, abs=1e-3)

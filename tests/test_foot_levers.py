@@ -203,6 +203,19 @@ def test_amp_feet_is_recorded_and_a_resume_with_the_other_setting_is_refused(sma
 # ---------------------------------------------------------------------- 60 Hz
 
 
+def test_a_student_or_a_task_policy_acts_at_its_parents_control_rate():
+    """A prior distilled from a 60 Hz expert steps at 60 Hz unless its recipe says otherwise, and a
+    recipe asking for another rate is refused, naming both."""
+    from motok.errors import UserError
+
+    parent = SimConfig(control_hz=60.0, target_filter=0.5)
+    child = SimConfig().same_world(parent, "the expert E")
+    assert (child.control_hz, child.target_filter) == (60.0, 0.5)
+    with pytest.raises(UserError, match="env.control_hz=30 but the expert E acts at env.control_hz=60"):
+        SimConfig(control_hz=30.0).same_world(parent, "the expert E")
+    assert SimConfig().same_world(SimConfig(), "the expert E").control_hz is None  # both at the humanoid's
+
+
 @pytest.fixture(scope="module")
 def libs(hum, small_dataset):
     from motok.sim.reference import build_library

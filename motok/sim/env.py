@@ -66,8 +66,15 @@ class SimConfig:
 
     def same_world(self, parent: "SimConfig", who: str) -> "SimConfig":
         """Act in the world ``parent`` was trained in (a student in its teacher's, a task policy
-        in its prior's): its PD-target filter unless this config sets one, and a different one
-        refused, since the parent's actions mean other motion through another filter."""
+        in its prior's): its PD-target filter and control rate unless this config sets them, and a
+        different one refused, since the parent's actions mean other motion through another filter
+        or held for another time. (A parent at the humanoid's rate, ``control_hz`` None, is not
+        compared: the humanoid is not known here.)"""
+        if self.control_hz is None:
+            self.control_hz = parent.control_hz
+        elif parent.control_hz is not None and float(self.control_hz) != float(parent.control_hz):
+            raise UserError(f"env.control_hz={self.control_hz:g} but {who} acts at env.control_hz="
+                            f"{parent.control_hz:g}: leave it unset to act in the same world")
         if self.target_filter is None:
             self.target_filter = parent.filter_b
         elif self.filter_b != parent.filter_b:

@@ -241,6 +241,8 @@ def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None 
     cfg.prior.kind = prior or cfg.prior.kind
     cfg.prior.check()
     hum = load_humanoid(expert_run / "humanoid.xml")
-    src, lib = runs.run_library(expert_run, read_meta(expert_run, EXPERT_KIND), hum, cfg.env.control_hz, data,
-                                clips, split)
+    emeta = read_meta(expert_run, EXPERT_KIND)
+    # at the expert's control rate unless the recipe sets one (train() refuses a different one)
+    hz = cfg.env.control_hz or emeta["config"].get("env", {}).get("control_hz")
+    src, lib = runs.run_library(expert_run, emeta, hum, hz, data, clips, split)
     return train(cfg, run, expert_run, lib, resume=resume, until=until, data=src)

@@ -121,6 +121,30 @@ def test_in_a_trainer_with_two_groups_each_environment_keeps_its_own_last_action
         prev = (a[-1], done[-1])
 
 
+def test_an_expert_with_both_options_resumes_exactly(hum, lib, tmp_path):
+    """Interrupted and resumed at a checkpoint, the expert with the action-rate term and the
+    soles' discriminator ends with the weights and metrics of one trained straight through (every
+    segment starts fresh episodes, and so no last action, in both)."""
+    from safetensors.torch import load_file
+
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.train import train
+
+    cfg = ExpertConfig(seed=0, iterations=4, save_every=2, w_action_rate=1.0)
+    cfg.env.num_envs, cfg.ppo.horizon, cfg.ppo.minibatch_size = 4, 8, 16
+    cfg.net.encoder = cfg.net.decoder = cfg.net.value = [16]
+    cfg.amp.hidden, cfg.amp.batch_size, cfg.amp.updates, cfg.amp.feet = [16], 16, 1, True
+    train(cfg, tmp_path / "straight", hum, lib)
+    train(cfg, tmp_path / "split", hum, lib, until=2)
+    train(cfg, tmp_path / "split", hum, lib, resume=True)
+    a, b = (load_file(tmp_path / r / "model.safetensors") for r in ("straight", "split"))
+    extra = json.loads((tmp_path / "split" / "bundle.json").read_text())["extra"]
+    assert a["disc.mean"].shape[0] == extra["amp_obs_dim"] == extra["obs_dim"] + 4  # Eq. 7 and the soles
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    rows = [[json.loads(x) for x in (tmp_path / r / "metrics.jsonl").read_text().splitlines()] for r in ("straight", "split")]
+    assert [r["r_action_rate"] for r in rows[0]] == [r["r_action_rate"] for r in rows[1]]
+
+
 # ---------------------------------------------------------------------- the discriminator sees the soles
 
 
@@ -193,6 +217,9 @@ def test_amp_feet_is_recorded_and_a_resume_with_the_other_setting_is_refused(sma
     assert r.exit_code == 2 and "amp.feet True -> False" in r.output, r.output
     r = CliRunner().invoke(app, [*args, "--resume"])  # the run's own settings: goes on
     assert r.exit_code == 0 and json.loads((run / "bundle.json").read_text())["extra"]["iteration"] == 2
+    new = [*args[:-1], str(tmp_path / "warm")]  # a warm start whose discriminator saw another input
+    r = CliRunner().invoke(app, [*new, "--init", str(run), "--until", "1"])
+    assert r.exit_code == 2 and "amp.feet=true, this recipe has amp.feet=false" in r.output, r.output
     # a config saved before these options existed loads as what it did: both off
     old = to_dict(ExpertConfig())
     del old["w_action_rate"], old["amp"]["feet"]

@@ -11,7 +11,7 @@ computed on the stored transitions ``(s, s')`` after the rollout and then traine
 with ``action_rate`` (its weight) > 0, ``action_rate * r_action_rate``, the change of the
 action between consecutive steps of an episode (``motok.control.mdp.rewards.action_rate``).
 The hooks' transitions are the Eq. 7 observations unless ``hook_obs(mdp, obs)`` extends them
-(AMP's discriminator seeing the soles, ``motok.control.rl.amp.with_soles``).
+(AMP's discriminator seeing the soles, ``motok.control.rl.amp.SoleObservation``).
 Episode statistics (return, main reward per step, length, share truncated rather than
 terminated) are kept across iterations per environment. ``update_hooks`` then trains the hooks
 on the stored transitions.

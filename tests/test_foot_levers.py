@@ -332,3 +332,8 @@ def test_every_lever_of_the_ranking_script_is_a_valid_change_of_the_recipe(scrip
     assert r60s.ppo.gamma ** 2 == pytest.approx(base.ppo.gamma, abs=1e-4)
     assert r60s.ppo.lam ** 2 == pytest.approx(base.ppo.lam, abs=1e-3)
     assert (1 - r60s.env.target_filter) ** 2 == pytest.approx(1 - base.env.target_filter, abs=1e-3)
+    # on the chosen world the 30 Hz filter is 0.3, and every set2 lever keeps it per second
+    set2 = cfgs["filter0.3+ankle0.5"]
+    assert (1 - cfgs["set2+rate60s"].env.target_filter) ** 2 == pytest.approx(1 - set2.env.target_filter, abs=1e-3)
+    assert cfgs["set2+action_rate"].env.target_filter == cfgs["set2+amp_feet"].env.target_filter == 0.3
+    assert fl.LEVERS["set2+rate60s"][0] == fl.LEVERS["filter0.3+ankle0.5"][0]

@@ -1,4 +1,4 @@
-"""Two experts side by side on the same clips, to see what their feet do: each plays the clip from
+"""One to three experts side by side on the same clips, to see what their feet do: each plays the clip from
 its first frame (the most likely action, as ``motok control expert eval``), the reference drawn as a
 translucent ghost, and the sole corners that touch the floor marked: green while they hold, red
 while they slide faster than ``motok.sim.soles.SLIP_SPEED``. Each panel's caption carries its
@@ -46,7 +46,7 @@ def panel(run: Path, label: str, data, clip: str, size) -> tuple[list[np.ndarray
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--expert", action="append", required=True, type=Path, help="an expert run (twice)")
+    ap.add_argument("--expert", action="append", required=True, type=Path, help="an expert run (1-3 times)")
     ap.add_argument("--label", action="append", help="a caption per expert (default: the run's name)")
     ap.add_argument("-d", "--data", required=True, help="the dataset the clips come from")
     ap.add_argument("--clip", action="append", required=True, help="a clip name or glob (repeatable)")
@@ -54,20 +54,21 @@ def main(argv=None) -> None:
                     "several: NAME_CLIP.mp4")
     ap.add_argument("--size", default="480x400", help="each panel's WIDTHxHEIGHT")
     a = ap.parse_args(argv)
-    if len(a.expert) != 2:
-        raise SystemExit("error: --expert twice: the two runs to put side by side")
+    if not 1 <= len(a.expert) <= 3:
+        raise SystemExit(f"error: --expert 1 to 3 times (got {len(a.expert)}): the runs to put side by side")
     labels = a.label or [r.name for r in a.expert]
-    if len(labels) != 2:
-        raise SystemExit("error: --label twice, one per --expert, or not at all")
+    if len(labels) != len(a.expert):
+        raise SystemExit("error: --label once per --expert, or not at all")
     size = tuple(int(x) for x in a.size.split("x"))
     names = [n for c in a.clip for n in select_clips(a.data, c, None)]
     if not names:
         raise UserError(f"no clip of {a.data} matches {a.clip}")
     for name in names:
         out = a.out if len(names) == 1 else a.out.with_name(f"{a.out.stem}_{name}{a.out.suffix}")
-        (fa, fps), (fb, _) = (panel(r, lab, a.data, name, size) for r, lab in zip(a.expert, labels))
-        n = max(len(fa), len(fb))  # the one that fell holds its last frame
-        frames = (np.concatenate([fa[min(t, len(fa) - 1)], fb[min(t, len(fb) - 1)]], 1) for t in range(n))
+        panels = [panel(r, lab, a.data, name, size) for r, lab in zip(a.expert, labels)]
+        fps = panels[0][1]
+        n = max(len(f) for f, _ in panels)  # one that fell holds its last frame
+        frames = (np.concatenate([f[min(t, len(f) - 1)] for f, _ in panels], 1) for t in range(n))
         write_video(frames, out, fps)
         print(f"{out}: {name}, {n} frames")
 

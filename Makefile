@@ -51,29 +51,33 @@ demo: install
 	@echo "walk_generated.gif / .bvh / .h5:"
 	@ls -l $(DEMO)
 
-# make demo-physics: six walk clips of set 2 -> a short PPO expert -> a briefly distilled hybrid
-# prior -> "a person walks forward" from a GPT, tracked by the prior (`gpt sample --prior`) ->
-# a short navigation policy over the frozen prior, evaluated and rendered. Toy budgets: the expert
-# does not walk yet (docs/control/expert.md: 80 % of the walks after 22 min), so the character mostly
-# falls; the demo shows every stage and file, not results. The GPT is `make demo`'s when
-# runs/demo/gpt exists, else a small tokenizer and GPT trained here on the six clips. The updates
-# run on one torch thread: beside another job two threads spin against it (a PPO update measured
-# 9.8 s on two threads, 0.25 s on one).
-# Measured on a quiet 2-core machine (15.1 min, `make install` already done): preprocess 14 s,
-# expert 6.0 min, distill 3.5 min, tokenizer + GPT 2.8 min (skipped with runs/demo/gpt), sample
-# and track 9 s, navigation 2.3 min, its evaluation and video 7 s; beside another training 16.5 min.
+# make demo-physics: the walks and turns of set 2's "normal" style (18 clips) -> a PPO expert on the
+# chosen feet settings (recipes/control/expert_set2.yaml: filtered PD targets, compliant ankles), 600
+# iterations at the learning rate the whole-dataset run starts with (--until: the recipe's long schedule)
+# -> a hybrid prior distilled for 200 iterations -> "a person walks forward" from a GPT, tracked by the
+# prior (`gpt sample --prior`) -> a navigation policy over the frozen prior toward targets 1.5-4 m away
+# (the paper's are up to 10 m, renewed every 4 s: more than a half-hour budget learns), evaluated and
+# rendered. The GPT is `make demo`'s when runs/demo/gpt exists, else a small tokenizer and GPT trained
+# here on the clips. The updates run on one torch thread: beside another job two threads spin against it.
+# Measured on 2 quiet cores (docs/results.md): 23.8 min after `make install`; the expert plays 5 of its 6
+# evaluation clips to the end, the navigation policy reaches 4 of 28 targets; the small GPT's walk falls.
 PHYS       := runs/demo-physics
 PHYS_GPT   := $(if $(wildcard $(DEMO)/gpt/bundle.json),$(DEMO)/gpt,$(PHYS)/gpt)
-PHYS_CLIPS := dataset-2_walk_normal_00[1-6]
+PHYS_CLIPS := dataset-2_walk*_normal_00[1-6]
 PHYS_SET   := --set update_threads=1
+PHYS_EXPERT_IT := 600
+PHYS_PRIOR_IT  := 200
+PHYS_NAV_IT    := 300
+PHYS_NAV   := --set tasks.navigation.min_distance=1.5 --set tasks.navigation.max_distance=4.0 \
+	--set tasks.navigation.retarget_seconds=6.0 --set tasks.navigation.episode_seconds=12.0
 
 demo-physics: install
 	rm -rf $(PHYS)
 	$(BIN)/motok preprocess --recipe recipes/preprocess/bandai2.yaml --clips '$(PHYS_CLIPS)' -o $(PHYS)/walks.h5
-	$(BIN)/motok control expert train -d $(PHYS)/walks.h5 --recipe recipes/control/expert.yaml \
-		$(PHYS_SET) --set iterations=350 --set eval_every=175 -o $(PHYS)/expert
+	$(BIN)/motok control expert train -d $(PHYS)/walks.h5 --recipe recipes/control/expert_set2.yaml \
+		$(PHYS_SET) --until $(PHYS_EXPERT_IT) --set eval_every=$(PHYS_EXPERT_IT) -o $(PHYS)/expert
 	$(BIN)/motok control distill --expert $(PHYS)/expert --kind hybrid --recipe recipes/control/prior_hybrid.yaml \
-		$(PHYS_SET) --set iterations=150 --set eval_every=75 -o $(PHYS)/prior_hybrid
+		$(PHYS_SET) --set iterations=$(PHYS_PRIOR_IT) --set eval_every=$(PHYS_PRIOR_IT) -o $(PHYS)/prior_hybrid
 ifeq ($(PHYS_GPT),$(PHYS)/gpt)
 	$(BIN)/motok tokenize train --data $(PHYS)/walks.h5 --recipe recipes/tokenizer/demo.yaml --set iterations=300 \
 		-o $(PHYS)/tokenizer
@@ -83,7 +87,7 @@ endif
 	OMP_NUM_THREADS=1 $(BIN)/motok gpt sample --gpt $(PHYS_GPT) --text "a person walks forward" --seed 0 \
 		--prior $(PHYS)/prior_hybrid -o $(PHYS)/walk_sim.h5 --render $(PHYS)/walk_sim.mp4 --bvh $(PHYS)/walk_sim.bvh
 	$(BIN)/motok control train --task navigation --prior $(PHYS)/prior_hybrid \
-		--recipe recipes/control/task_navigation.yaml $(PHYS_SET) --set iterations=150 -o $(PHYS)/nav
+		--recipe recipes/control/task_navigation.yaml $(PHYS_SET) $(PHYS_NAV) --set iterations=$(PHYS_NAV_IT) -o $(PHYS)/nav
 	$(BIN)/motok control eval --task navigation --policy $(PHYS)/nav -n 16 --render $(PHYS)/nav.mp4
 	@echo
 	@echo "demo-physics outputs in $(PHYS)/: the walks (walks.h5), an expert and a hybrid prior (run folders"

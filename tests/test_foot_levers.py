@@ -337,3 +337,15 @@ def test_every_lever_of_the_ranking_script_is_a_valid_change_of_the_recipe(scrip
     assert (1 - cfgs["set2+rate60s"].env.target_filter) ** 2 == pytest.approx(1 - set2.env.target_filter, abs=1e-3)
     assert cfgs["set2+action_rate"].env.target_filter == cfgs["set2+amp_feet"].env.target_filter == 0.3
     assert fl.LEVERS["set2+rate60s"][0] == fl.LEVERS["filter0.3+ankle0.5"][0]
+
+
+def test_the_feet_videos_take_one_to_three_experts_and_one_label_each(script, tmp_path):
+    """``scripts/feet_videos.py`` refuses, before any clip is played, a panel count it cannot lay out
+    and labels that do not pair with the experts, naming what it expected."""
+    fv = script("feet_videos")
+    run = str(tmp_path / "run")
+    common = ["-d", str(tmp_path / "data.h5"), "--clip", "x", "-o", str(tmp_path / "v.mp4")]
+    with pytest.raises(SystemExit, match="1 to 3 times \\(got 4\\)"):
+        fv.main([*["--expert", run] * 4, *common])
+    with pytest.raises(SystemExit, match="--label once per --expert"):
+        fv.main(["--expert", run, "--expert", run, "--label", "only one", *common])

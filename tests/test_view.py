@@ -196,7 +196,7 @@ def xvfb():
         number = f.readline().strip()
     if not number:
         proc.kill()
-        pytest.skip("Xvfb did not start")
+        unavailable("Xvfb was found but did not start (no display number on -displayfd)")
     yield f":{number}"
     proc.terminate()
     proc.wait(10)

@@ -55,12 +55,14 @@ LEVERS = {
     # 60 Hz with the per-step settings that keep their 30 Hz values per second: gamma 0.99^(1/2), lam
     # 0.95^(1/2), the target filter's decay 0.5 per 1/30 s (1 - 0.5^(1/2)); the horizon stays 32 steps
     "rate60s": ([], ["env.control_hz=60", "ppo.gamma=0.995", "ppo.lam=0.975", "env.target_filter=0.293"]),
-    # the same three on the chosen world (filter 0.3, ankles at half: expert_set2.yaml's), against
-    # filter0.3+ankle0.5; at 60 Hz the filter's decay 0.7 per 1/30 s is 1 - 0.7^(1/2) per step
-    "set2+action_rate": (["ankle_stiffness_scale=0.5"], ["env.target_filter=0.3", "w_action_rate=1.0"]),
-    "set2+amp_feet": (["ankle_stiffness_scale=0.5"], ["env.target_filter=0.3", "amp.feet=true"]),
-    "set2+rate60s": (["ankle_stiffness_scale=0.5"], ["env.control_hz=60", "ppo.gamma=0.995", "ppo.lam=0.975",
-                                                      "env.target_filter=0.163"]),
+}
+# the same three on the chosen world (filter 0.3, ankles at half: expert_set2.yaml's), against
+# filter0.3+ankle0.5; at 60 Hz the filter's decay 0.7 per 1/30 s is 1 - 0.7^(1/2) per step
+_SET2_HUM, _SET2 = LEVERS["filter0.3+ankle0.5"]
+LEVERS |= {
+    "set2+action_rate": (_SET2_HUM, [*_SET2, "w_action_rate=1.0"]),
+    "set2+amp_feet": (_SET2_HUM, [*_SET2, "amp.feet=true"]),
+    "set2+rate60s": (_SET2_HUM, ["env.control_hz=60", "ppo.gamma=0.995", "ppo.lam=0.975", "env.target_filter=0.163"]),
 }
 
 

@@ -45,15 +45,18 @@ METRICS = {
 EXTRA = {"inbetween": [("success_rate", "success", "higher", PCT)], "hmd": [("success_rate", "success", "higher", PCT)],
          "navigation": [("approach_share", "distance closed", "higher", PCT)]}
 
-# The paper's numbers, one entry per table, named by its source. docs/results.md and docs/history.md
-# state the paper's orderings and setup (4,096 environments, batches of 65,536, lr 5e-5, 8 x 1,024
-# codes) but transcribe none of these tables' values, so `values` is empty until they are: a row
-# written here as {variant: {key: value}} prints beside ours as "VARIANT (paper)". Keys are the
-# evaluation-file keys of METRICS and EXTRA (the paper's keyframe MPJPE of Table 2 is
-# "keyframe_mpjpe_mm_mean", its all-frame one "mpjpe_mm_mean"); a key that is not one of the
-# table's columns is refused rather than left unprinted. Values in the columns' units: millimetres
-# (convert a table in metres or centimetres), seconds, falls per episode, and shares as fractions
-# (a paper's 85.2 % is 0.852). A column the paper does not report is left out of its row.
+# The paper's numbers, one entry per table, named by its source; `values` is empty until they are
+# transcribed (docs/results.md "The paper" says why none is yet). A row written here as
+# {variant: {key: value}} prints under ours as "VARIANT (paper)", and after all of ours for a prior
+# we have no run of. Keys are the evaluation-file keys of METRICS and EXTRA (the paper's keyframe
+# MPJPE of Table 2 is "keyframe_mpjpe_mm_mean", its all-frame one "mpjpe_mm_mean"); a key that is
+# not one of the table's columns is refused rather than left unprinted. Values in the columns'
+# units: positions in millimetres (convert a table in metres or centimetres); velocity and
+# acceleration errors in mm per control step and per step squared at the 30 Hz control rate
+# (motok.features.kinematics), so a table in mm/s is divided by 30 and one in mm/s^2 by 900;
+# seconds; falls per episode; shares as fractions (a paper's 85.2 % is 0.852). A column the paper
+# does not report is left out of its row; a paper column we do not measure is named in
+# docs/results.md instead.
 PAPER = {
     "inbetween": {"source": "Bae et al. 2025, Table 2, section 6.3", "values": {}},
     "hmd": {"source": "Bae et al. 2025, Table 3, section 6.3", "values": {}},
@@ -121,17 +124,21 @@ def seeded_tables(R: Path) -> str:
             continue
         cols = METRICS[task] + EXTRA[task]
         rows = []
+        transcribed = PAPER[task]["values"]
+        for v, paper in transcribed.items():
+            unknown = sorted(set(paper) - {k for k, _, _, _ in cols})
+            if unknown:
+                raise ValueError(f"PAPER[{task!r}] row {v!r}: {', '.join(unknown)} not among the table's columns")
         order = [v for v in TASK_PRIORS if v in runs[task]] + sorted(v for v in runs[task] if v not in TASK_PRIORS)
-        for v in order:
-            ev = runs[task][v]
-            rows.append([v, ", ".join(str(s) for s in sorted(ev))] + [cell(values(ev, k), f) for k, _, _, f in cols])
-            paper = PAPER[task]["values"].get(v)
-            if paper:
-                unknown = sorted(set(paper) - {k for k, _, _, _ in cols})
-                if unknown:
-                    raise ValueError(f"PAPER[{task!r}] row {v!r}: {', '.join(unknown)} not among the table's columns")
-                rows.append([f"{v} (paper)", ""] + [fmt(paper[k], f) if k in paper else "" for k, _, _, f in cols])
-        note = "" if any(PAPER[task]["values"].values()) else \
+        # each paper row under ours; the paper's rows of priors we have no run of after all of ours
+        for v in order + [v for v in transcribed if v not in runs[task]]:
+            if v in runs[task]:
+                ev = runs[task][v]
+                rows.append([v, ", ".join(str(s) for s in sorted(ev))] + [cell(values(ev, k), f) for k, _, _, f in cols])
+            if transcribed.get(v):
+                p = transcribed[v]
+                rows.append([f"{v} (paper)", ""] + [fmt(p[k], f) if k in p else "" for k, _, _, f in cols])
+        note = "" if any(transcribed.values()) else \
             f" The paper's values ({PAPER[task]['source']}) are not transcribed: PAPER in scripts/task_tables.py."
         out.append(f"{TITLE[task]}: mean ± 95 % interval over seeds (Student t).{note}\n\n"
                    + _table(["prior", "seeds"] + [h for _, h, _, _ in cols], rows))

@@ -88,21 +88,56 @@ def test_the_papers_row_prints_beside_ours(tmp_path, script, monkeypatch):
     out = tt.seeded_tables(runs)
     assert "are not transcribed" in out and "(paper)" not in out
     monkeypatch.setitem(tt.PAPER["inbetween"], "values",
-                        {"hybrid": {"keyframe_mpjpe_mm_mean": 12.34, "mpjpe_mm_mean": 56.7, "success_rate": 0.852}})
+                        {"discrete": {"mpjpe_mm_mean": 70.0},
+                         "hybrid": {"keyframe_mpjpe_mm_mean": 12.34, "mpjpe_mm_mean": 56.7, "success_rate": 0.852}})
     out = tt.seeded_tables(runs)
     lines = out.splitlines()
     ours = next(i for i, x in enumerate(lines) if x.startswith("| hybrid | 0, 1 |"))
     assert lines[ours + 1] == "| hybrid (paper) |  | 12.3 |  |  |  | 56.7 |  |  |  | 85.2 % |", lines[ours + 1]
+    # a prior we have no run of still shows the paper's row, after ours
+    assert lines[ours + 2] == "| discrete (paper) |  |  |  |  |  | 70.0 |  |  |  |  |", lines[ours + 2]
     assert "not transcribed" not in out
     monkeypatch.setitem(tt.PAPER["inbetween"], "values", {"hybrid": {"keyframe_mpjpe_mm": 12.3}})
     with pytest.raises(ValueError, match="keyframe_mpjpe_mm not among"):
         tt.seeded_tables(runs)
+    # refused also in the row of a prior we have no run of
+    monkeypatch.setitem(tt.PAPER["inbetween"], "values", {"continuous": {"succes_rate": 0.9}})
+    with pytest.raises(ValueError, match="'continuous': succes_rate not among"):
+        tt.seeded_tables(runs)
 
 
-def test_the_transcribed_keys_are_columns(script):
-    """Every key of every row of PAPER names a column of its table (a misspelt key would print nothing)."""
+def test_the_transcribed_rows_print_beside_a_run_set(tmp_path, script):
+    """The real PAPER: every row's keys are columns of its table (a misspelt key would print
+    nothing) and its shares are fractions (a transcribed 85.2 instead of 0.852 prints as 8520 %);
+    and over one seed of every prior, each task's table shows each transcribed row right under our
+    row of its prior, every value in its own column in that column's format, or, for a task with
+    nothing transcribed, says so and names the paper's table."""
     tt = script("task_tables")
+    runs = tmp_path / "runs"
     for task, entry in tt.PAPER.items():
-        cols = {k for k, _, _, _ in tt.METRICS[task] + tt.EXTRA[task]}
+        cols = tt.METRICS[task] + tt.EXTRA[task]
+        keys = {k for k, _, _, _ in cols}
         for variant, row in entry["values"].items():
-            assert set(row) <= cols, (task, variant, set(row) - cols)
+            assert set(row) <= keys, (task, variant, set(row) - keys)
+            assert all(0.0 <= row[k] <= 1.0 for k, _, _, f in cols if f == tt.PCT and k in row), (task, variant)
+        for variant in tt.TASK_PRIORS:
+            d = runs / "tasks" / f"{task}_{variant}_seed0"
+            d.mkdir(parents=True)
+            (d / tt.EVAL_FILE[task]).write_text(json.dumps({k: 0.5 for k in keys}))
+    lines = tt.seeded_tables(runs).splitlines()
+    for task, entry in tt.PAPER.items():
+        start = next(i for i, x in enumerate(lines) if x.startswith(tt.TITLE[task] + ":"))
+        end = next((i for i, x in enumerate(lines) if i > start and not x and lines[i - 1].startswith("|")), len(lines))
+        block, title = lines[start:end], lines[start]
+        assert sum(x.startswith("| ") and " (paper) |" not in x for x in block) == 1 + len(tt.TASK_PRIORS), block
+        cols = tt.METRICS[task] + tt.EXTRA[task]
+        if not any(entry["values"].values()):
+            assert f"The paper's values ({entry['source']}) are not transcribed" in title, title
+            assert not any("(paper)" in x for x in block), block
+            continue
+        assert "not transcribed" not in title, title
+        for variant, row in entry["values"].items():
+            ours = next(i for i, x in enumerate(block) if x.startswith(f"| {variant} | 0 |"))
+            cells = [c.strip() for c in block[ours + 1].strip("|").split("|")]
+            assert cells[:2] == [f"{variant} (paper)", ""], block[ours + 1]
+            assert cells[2:] == [tt.fmt(row[k], f) if k in row else "" for k, _, _, f in cols], block[ours + 1]

@@ -4,6 +4,7 @@ action-rate term, the discriminator seeing the soles, and a higher control rate.
 from __future__ import annotations
 
 import json
+import re
 from functools import partial
 
 import numpy as np
@@ -241,6 +242,49 @@ def test_a_student_or_a_task_policy_acts_at_its_parents_control_rate():
     with pytest.raises(UserError, match="env.control_hz=30 but the expert E acts at env.control_hz=60"):
         SimConfig(control_hz=30.0).same_world(parent, "the expert E")
     assert SimConfig().same_world(SimConfig(), "the expert E").control_hz is None  # both at the humanoid's
+
+
+def test_a_rate_set_against_a_parent_at_the_humanoids_rate_is_refused():
+    """A parent that left its rate unset acts at its humanoid's: a child asking for another is refused,
+    naming both; one asking for the humanoid's own goes on, and an unset one stays unset (a saved
+    recipe does not change)."""
+    from motok.errors import UserError
+
+    with pytest.raises(UserError, match="env.control_hz=60 but the prior P acts at its humanoid's rate, 30:"):
+        SimConfig(control_hz=60.0).same_world(SimConfig(), "the prior P", 30.0)
+    assert SimConfig(control_hz=30.0).same_world(SimConfig(), "the prior P", 30.0).control_hz == 30.0
+    assert SimConfig().same_world(SimConfig(), "the prior P", 30.0).control_hz is None
+
+
+def test_distilling_or_training_a_task_at_another_rate_than_the_parents_is_refused_before_the_library(
+        hum, small_dataset, tmp_path_factory, monkeypatch):
+    """``motok control distill`` from an expert at the humanoid's 30 Hz, and ``motok control train``
+    over a prior at it, with ``env.control_hz: 60``: each refused naming the rate, before the
+    reference library is built at the wrong one."""
+    from motok.control import runs
+    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.train import train_from_prior
+    from motok.control.priors.distill import train_from_expert
+    from motok.control.priors.model import DistillConfig
+    from motok.errors import UserError
+    from task_helpers import tiny_prior_on_three_clips
+
+    prior = tiny_prior_on_three_clips(hum, small_dataset, tmp_path_factory, "rates")
+    expert, out = prior.parent / "expert", tmp_path_factory.mktemp("refused")
+
+    def built(*a, **k):
+        raise AssertionError("the reference library was built before the rate was checked")
+
+    monkeypatch.setattr(runs, "run_library", built)
+    cfg = DistillConfig(seed=0, iterations=1, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
+    cfg.env.num_envs, cfg.env.nthread, cfg.env.control_hz = 4, 1, 60.0
+    said = "env.control_hz=60 but the {} acts at its humanoid's rate, 30:"
+    with pytest.raises(UserError, match=re.escape(said.format(f"expert {expert}"))):
+        train_from_expert(cfg, expert, out / "prior", prior="hybrid")
+    tcfg = TaskTrainConfig(seed=0, iterations=1, save_every=1000, task="navigation")
+    tcfg.env.num_envs, tcfg.env.nthread, tcfg.env.control_hz = 4, 1, 60.0
+    with pytest.raises(UserError, match=re.escape(said.format(f"prior {prior}"))):
+        train_from_prior(tcfg, prior, out / "nav", codebooks=2)
 
 
 @pytest.fixture(scope="module")

@@ -221,6 +221,9 @@ def test_amp_feet_is_recorded_and_a_resume_with_the_other_setting_is_refused(sma
     new = [*args[:-1], str(tmp_path / "warm")]  # a warm start whose discriminator saw another input
     r = CliRunner().invoke(app, [*new, "--init", str(run), "--until", "1"])
     assert r.exit_code == 2 and "amp.feet=true, this recipe has amp.feet=false" in r.output, r.output
+    r = CliRunner().invoke(app, [*args[:-1], str(tmp_path / "nostyle"), "--init", str(run), "--set", "w_style=0",
+                                 "--until", "1"])  # no discriminator here: nothing of the other one is loaded
+    assert r.exit_code == 0, r.output
     # a config saved before these options existed loads as what it did: both off
     old = to_dict(ExpertConfig())
     del old["w_action_rate"], old["amp"]["feet"]

@@ -290,6 +290,39 @@ def test_distilling_or_training_a_task_at_another_rate_than_the_parents_is_refus
         train_from_prior(tcfg, prior, out / "nav", codebooks=2)
 
 
+def test_a_prior_of_a_60hz_expert_and_a_task_over_it_step_at_60hz(hum, small_dataset, tmp_path):
+    """Through the commands' entry points, with recipes that leave the rate unset: the prior takes
+    its expert's 60 Hz (its recipe, its spec and the library it learnt on), and the task policy the
+    prior's."""
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.train import train as train_expert
+    from motok.control.highlevel.train import train_from_prior
+    from motok.control.priors.distill import train_from_expert
+    from motok.control.priors.model import DistillConfig
+    from motok.sim.reference import load_library
+    from task_helpers import tiny_task_config
+    from tiny_runs import small_prior_config
+
+    lib = load_library(hum, small_dataset, control_hz=60.0, clips=[0], cache_dir=tmp_path / "cache")
+    ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)
+    ecfg.env.num_envs, ecfg.env.nthread, ecfg.env.control_hz = 4, 1, 60.0
+    ecfg.ppo.horizon, ecfg.ppo.minibatch_size = 8, 32
+    ecfg.net.encoder = ecfg.net.decoder = ecfg.net.value = [16]
+    ecfg.amp.enabled = False
+    train_expert(ecfg, tmp_path / "expert", hum, lib, data=small_dataset)
+    cfg = DistillConfig(seed=0, iterations=1, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
+    cfg.env.num_envs, cfg.env.nthread = 4, 1
+    cfg.prior = small_prior_config("hybrid")
+    train_from_expert(cfg, tmp_path / "expert", tmp_path / "prior")
+    prior = json.loads((tmp_path / "prior" / "bundle.json").read_text())
+    assert prior["config"]["env"]["control_hz"] == prior["extra"]["control_hz"] == 60.0
+    tcfg = tiny_task_config("navigation")
+    tcfg.iterations = tcfg.save_every = tcfg.eval_every = 1
+    train_from_prior(tcfg, tmp_path / "prior", tmp_path / "nav", codebooks=2)
+    nav = json.loads((tmp_path / "nav" / "bundle.json").read_text())
+    assert nav["config"]["env"]["control_hz"] == nav["extra"]["control_hz"] == 60.0
+
+
 @pytest.fixture(scope="module")
 def libs(hum, small_dataset):
     from motok.sim.reference import build_library

@@ -290,30 +290,38 @@ def test_distilling_or_training_a_task_at_another_rate_than_the_parents_is_refus
         train_from_prior(tcfg, prior, out / "nav", codebooks=2)
 
 
-def test_a_prior_of_a_60hz_expert_and_a_task_over_it_step_at_60hz(hum, small_dataset, tmp_path):
-    """Through the commands' entry points, with recipes that leave the rate unset: the prior takes
-    its expert's 60 Hz (its recipe, its spec and the library it learnt on), and the task policy the
-    prior's."""
+@pytest.fixture(scope="module")
+def expert60(hum, small_dataset, tmp_path_factory):
+    """A 1-iteration expert at 60 Hz on the first clip (no AMP)."""
     from motok.control.expert.model import ExpertConfig
     from motok.control.expert.train import train as train_expert
-    from motok.control.highlevel.train import train_from_prior
-    from motok.control.priors.distill import train_from_expert
-    from motok.control.priors.model import DistillConfig
     from motok.sim.reference import load_library
-    from task_helpers import tiny_task_config
-    from tiny_runs import small_prior_config
 
-    lib = load_library(hum, small_dataset, control_hz=60.0, clips=[0], cache_dir=tmp_path / "cache")
+    root = tmp_path_factory.mktemp("expert60")
+    lib = load_library(hum, small_dataset, control_hz=60.0, clips=[0], cache_dir=root / "cache")
     ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)
     ecfg.env.num_envs, ecfg.env.nthread, ecfg.env.control_hz = 4, 1, 60.0
     ecfg.ppo.horizon, ecfg.ppo.minibatch_size = 8, 32
     ecfg.net.encoder = ecfg.net.decoder = ecfg.net.value = [16]
     ecfg.amp.enabled = False
-    train_expert(ecfg, tmp_path / "expert", hum, lib, data=small_dataset)
+    train_expert(ecfg, root / "expert", hum, lib, data=small_dataset)
+    return root / "expert"
+
+
+def test_a_prior_of_a_60hz_expert_and_a_task_over_it_step_at_60hz(expert60, tmp_path):
+    """Through the commands' entry points, with recipes that leave the rate unset: the prior takes
+    its expert's 60 Hz (its recipe, its spec and the library it learnt on), and the task policy the
+    prior's."""
+    from motok.control.highlevel.train import train_from_prior
+    from motok.control.priors.distill import train_from_expert
+    from motok.control.priors.model import DistillConfig
+    from task_helpers import tiny_task_config
+    from tiny_runs import small_prior_config
+
     cfg = DistillConfig(seed=0, iterations=1, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
     cfg.env.num_envs, cfg.env.nthread = 4, 1
     cfg.prior = small_prior_config("hybrid")
-    train_from_expert(cfg, tmp_path / "expert", tmp_path / "prior")
+    train_from_expert(cfg, expert60, tmp_path / "prior")
     prior = json.loads((tmp_path / "prior" / "bundle.json").read_text())
     assert prior["config"]["env"]["control_hz"] == prior["extra"]["control_hz"] == 60.0
     tcfg = tiny_task_config("navigation")
@@ -429,3 +437,19 @@ def test_the_feet_videos_take_one_to_three_experts_and_one_label_each(script, tm
         fv.main([*["--expert", run] * 4, *common])
     with pytest.raises(SystemExit, match="--label once per --expert"):
         fv.main(["--expert", run, "--expert", run, "--label", "only one", *common])
+
+
+def test_the_feet_videos_refuse_experts_at_two_control_rates(script, expert60, tmp_path):
+    """Panels are joined frame by frame, so a 60 Hz expert beside a 30 Hz one would play at twice
+    its speed: refused before any clip is played, naming both rates."""
+    import shutil
+
+    fv = script("feet_videos")
+    other = tmp_path / "expert30"
+    shutil.copytree(expert60, other)
+    meta = json.loads((other / "bundle.json").read_text())
+    meta["extra"]["control_hz"] = 30.0
+    (other / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(SystemExit, match="the experts act at 60 Hz, 30 Hz; side by side they must share one"):
+        fv.main(["--expert", str(expert60), "--expert", str(other), "-d", str(tmp_path / "absent.h5"), "--clip", "x",
+                 "-o", str(tmp_path / "v.mp4")])

@@ -118,6 +118,8 @@ def test_in_a_trainer_with_two_groups_each_environment_keeps_its_own_last_action
         np.testing.assert_array_equal(s[1:].numpy()[same], s2[:-1].numpy()[same])
         D = tr.mdp.obs_dim  # a restarted row starts from its new episode's state, Eq. 7 and soles alike
         assert (s[1:].numpy()[~same][:, :D] != s2[:-1].numpy()[~same][:, :D]).any(-1).all()
+        # and an episode's last transition ends at its own final soles, taken before the restart
+        assert (s[1:].numpy()[~same][:, D:] != s2[:-1].numpy()[~same][:, D:]).any(-1).all()
         col.update_hooks()
         prev = (a[-1], done[-1])
 

@@ -22,7 +22,8 @@ import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from motok.control.expert.model import load_expert  # noqa: E402
+from motok.checkpoint import read_meta  # noqa: E402
+from motok.control.expert.model import KIND, load_expert  # noqa: E402
 from motok.control.tasks.imitation import play  # noqa: E402
 from motok.data.dataset import select_clips  # noqa: E402
 from motok.errors import UserError  # noqa: E402
@@ -59,6 +60,10 @@ def main(argv=None) -> None:
     labels = a.label or [r.name for r in a.expert]
     if len(labels) != len(a.expert):
         raise SystemExit("error: --label once per --expert, or not at all")
+    rates = [float(read_meta(r, KIND)["extra"]["control_hz"]) for r in a.expert]
+    if len(set(rates)) > 1:  # the panels are joined frame by frame: one would play at another speed
+        raise SystemExit(f"error: the experts act at {', '.join(f'{h:g} Hz' for h in rates)}; side by side they "
+                         "must share one control rate")
     size = tuple(int(x) for x in a.size.split("x"))
     names = [n for c in a.clip for n in select_clips(a.data, c, None)]
     if not names:

@@ -4,6 +4,7 @@ action-rate term, the discriminator seeing the soles, and a higher control rate.
 from __future__ import annotations
 
 import json
+import re
 from functools import partial
 
 import numpy as np
@@ -117,6 +118,8 @@ def test_in_a_trainer_with_two_groups_each_environment_keeps_its_own_last_action
         np.testing.assert_array_equal(s[1:].numpy()[same], s2[:-1].numpy()[same])
         D = tr.mdp.obs_dim  # a restarted row starts from its new episode's state, Eq. 7 and soles alike
         assert (s[1:].numpy()[~same][:, :D] != s2[:-1].numpy()[~same][:, :D]).any(-1).all()
+        # and an episode's last transition ends at its own final soles, taken before the restart
+        assert (s[1:].numpy()[~same][:, D:] != s2[:-1].numpy()[~same][:, D:]).any(-1).all()
         col.update_hooks()
         prev = (a[-1], done[-1])
 
@@ -220,6 +223,9 @@ def test_amp_feet_is_recorded_and_a_resume_with_the_other_setting_is_refused(sma
     new = [*args[:-1], str(tmp_path / "warm")]  # a warm start whose discriminator saw another input
     r = CliRunner().invoke(app, [*new, "--init", str(run), "--until", "1"])
     assert r.exit_code == 2 and "amp.feet=true, this recipe has amp.feet=false" in r.output, r.output
+    r = CliRunner().invoke(app, [*args[:-1], str(tmp_path / "nostyle"), "--init", str(run), "--set", "w_style=0",
+                                 "--until", "1"])  # no discriminator here: nothing of the other one is loaded
+    assert r.exit_code == 0, r.output
     # a config saved before these options existed loads as what it did: both off
     old = to_dict(ExpertConfig())
     del old["w_action_rate"], old["amp"]["feet"]
@@ -241,6 +247,90 @@ def test_a_student_or_a_task_policy_acts_at_its_parents_control_rate():
     with pytest.raises(UserError, match="env.control_hz=30 but the expert E acts at env.control_hz=60"):
         SimConfig(control_hz=30.0).same_world(parent, "the expert E")
     assert SimConfig().same_world(SimConfig(), "the expert E").control_hz is None  # both at the humanoid's
+
+
+def test_a_rate_set_against_a_parent_at_the_humanoids_rate_is_refused():
+    """A parent that left its rate unset acts at its humanoid's: a child asking for another is refused,
+    naming both; one asking for the humanoid's own goes on, and an unset one stays unset (a saved
+    recipe does not change)."""
+    from motok.errors import UserError
+
+    with pytest.raises(UserError, match="env.control_hz=60 but the prior P acts at its humanoid's rate, 30:"):
+        SimConfig(control_hz=60.0).same_world(SimConfig(), "the prior P", 30.0)
+    assert SimConfig(control_hz=30.0).same_world(SimConfig(), "the prior P", 30.0).control_hz == 30.0
+    assert SimConfig().same_world(SimConfig(), "the prior P", 30.0).control_hz is None
+
+
+def test_distilling_or_training_a_task_at_another_rate_than_the_parents_is_refused_before_the_library(
+        hum, small_dataset, tmp_path_factory, monkeypatch):
+    """``motok control distill`` from an expert at the humanoid's 30 Hz, and ``motok control train``
+    over a prior at it, with ``env.control_hz: 60``: each refused naming the rate, before the
+    reference library is built at the wrong one."""
+    from motok.control import runs
+    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.control.highlevel.train import train_from_prior
+    from motok.control.priors.distill import train_from_expert
+    from motok.control.priors.model import DistillConfig
+    from motok.errors import UserError
+    from task_helpers import tiny_prior_on_three_clips
+
+    prior = tiny_prior_on_three_clips(hum, small_dataset, tmp_path_factory, "rates")
+    expert, out = prior.parent / "expert", tmp_path_factory.mktemp("refused")
+
+    def built(*a, **k):
+        raise AssertionError("the reference library was built before the rate was checked")
+
+    monkeypatch.setattr(runs, "run_library", built)
+    cfg = DistillConfig(seed=0, iterations=1, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
+    cfg.env.num_envs, cfg.env.nthread, cfg.env.control_hz = 4, 1, 60.0
+    said = "env.control_hz=60 but the {} acts at its humanoid's rate, 30:"
+    with pytest.raises(UserError, match=re.escape(said.format(f"expert {expert}"))):
+        train_from_expert(cfg, expert, out / "prior", prior="hybrid")
+    tcfg = TaskTrainConfig(seed=0, iterations=1, save_every=1000, task="navigation")
+    tcfg.env.num_envs, tcfg.env.nthread, tcfg.env.control_hz = 4, 1, 60.0
+    with pytest.raises(UserError, match=re.escape(said.format(f"prior {prior}"))):
+        train_from_prior(tcfg, prior, out / "nav", codebooks=2)
+
+
+@pytest.fixture(scope="module")
+def expert60(hum, small_dataset, tmp_path_factory):
+    """A 1-iteration expert at 60 Hz on the first clip (no AMP)."""
+    from motok.control.expert.model import ExpertConfig
+    from motok.control.expert.train import train as train_expert
+    from motok.sim.reference import load_library
+
+    root = tmp_path_factory.mktemp("expert60")
+    lib = load_library(hum, small_dataset, control_hz=60.0, clips=[0], cache_dir=root / "cache")
+    ecfg = ExpertConfig(seed=0, iterations=1, save_every=1000)
+    ecfg.env.num_envs, ecfg.env.nthread, ecfg.env.control_hz = 4, 1, 60.0
+    ecfg.ppo.horizon, ecfg.ppo.minibatch_size = 8, 32
+    ecfg.net.encoder = ecfg.net.decoder = ecfg.net.value = [16]
+    ecfg.amp.enabled = False
+    train_expert(ecfg, root / "expert", hum, lib, data=small_dataset)
+    return root / "expert"
+
+
+def test_a_prior_of_a_60hz_expert_and_a_task_over_it_step_at_60hz(expert60, tmp_path):
+    """Through the commands' entry points, with recipes that leave the rate unset: the prior takes
+    its expert's 60 Hz (its recipe, its spec and the library it learnt on), and the task policy the
+    prior's."""
+    from motok.control.highlevel.train import train_from_prior
+    from motok.control.priors.distill import train_from_expert
+    from motok.control.priors.model import DistillConfig
+    from task_helpers import tiny_task_config
+    from tiny_runs import small_prior_config
+
+    cfg = DistillConfig(seed=0, iterations=1, save_every=1000, horizon=8, epochs=1, minibatch_size=32)
+    cfg.env.num_envs, cfg.env.nthread = 4, 1
+    cfg.prior = small_prior_config("hybrid")
+    train_from_expert(cfg, expert60, tmp_path / "prior")
+    prior = json.loads((tmp_path / "prior" / "bundle.json").read_text())
+    assert prior["config"]["env"]["control_hz"] == prior["extra"]["control_hz"] == 60.0
+    tcfg = tiny_task_config("navigation")
+    tcfg.iterations = tcfg.save_every = tcfg.eval_every = 1
+    train_from_prior(tcfg, tmp_path / "prior", tmp_path / "nav", codebooks=2)
+    nav = json.loads((tmp_path / "nav" / "bundle.json").read_text())
+    assert nav["config"]["env"]["control_hz"] == nav["extra"]["control_hz"] == 60.0
 
 
 @pytest.fixture(scope="module")
@@ -349,3 +439,19 @@ def test_the_feet_videos_take_one_to_three_experts_and_one_label_each(script, tm
         fv.main([*["--expert", run] * 4, *common])
     with pytest.raises(SystemExit, match="--label once per --expert"):
         fv.main(["--expert", run, "--expert", run, "--label", "only one", *common])
+
+
+def test_the_feet_videos_refuse_experts_at_two_control_rates(script, expert60, tmp_path):
+    """Panels are joined frame by frame, so a 60 Hz expert beside a 30 Hz one would play at twice
+    its speed: refused before any clip is played, naming both rates."""
+    import shutil
+
+    fv = script("feet_videos")
+    other = tmp_path / "expert30"
+    shutil.copytree(expert60, other)
+    meta = json.loads((other / "bundle.json").read_text())
+    meta["extra"]["control_hz"] = 30.0
+    (other / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(SystemExit, match="the experts act at 60 Hz, 30 Hz; side by side they must share one"):
+        fv.main(["--expert", str(expert60), "--expert", str(other), "-d", str(tmp_path / "absent.h5"), "--clip", "x",
+                 "-o", str(tmp_path / "v.mp4")])

@@ -204,6 +204,15 @@ def test_targets_change_every_retarget_period_and_episodes_truncate(hum, lib):
     assert task.target_index.tolist() == [1, 0] and task.steps.tolist() == [30, 0]
 
 
+def test_given_starts_must_lie_inside_their_clips(hum, lib):
+    mdp = _mdp(hum, lib, 2)
+    end = int(lib.lengths[1])
+    mdp.reset(clips=[0, 1], frames=[0, end - 1])  # the last frame is a start
+    with pytest.raises(UserError, match=rf"^navigation task: start frames \[{end}\] are outside their clips "
+                                        rf"\(lengths \[{end}\]\)"):
+        mdp.reset(clips=[0, 1], frames=[0, end])
+
+
 def test_the_papers_targets_within_10_m_renewed_every_4_s(hum, lib):
     """C.3 with the defaults: a target within 10 m of the root, a new one exactly every 4 s (120
     control steps) drawn around where the root is then, 8 s episodes; the same seed draws the same

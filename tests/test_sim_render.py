@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from motok.sim.render import CAM_AZIMUTH, CAM_DISTANCE, CAM_ELEVATION, framing, render_trajectory
+from motok.errors import UserError
+from motok.sim.render import (CAM_AZIMUTH, CAM_DISTANCE, CAM_ELEVATION, framing, render_trajectory,
+                                trajectory_frames)
 
 GREEN = (0.1, 0.9, 0.1, 1.0)  # a colour neither the humanoid, the floor nor the sky has
 
@@ -63,6 +65,19 @@ def test_a_distant_marker_is_drawn_in_every_frame(hum, tmp_path, where):
     # and the same video without the marker has none of its colour
     plain, _ = render_trajectory(hum, qpos, tmp_path / "p.mp4", 30.0)
     assert all(green_pixels(f) == 0 for f in iio.imread(plain))
+
+
+def test_markers_of_the_wrong_shape_are_refused_before_anything_is_made(hum, tmp_path):
+    """``(T, 3)`` points (one marker per frame without its K axis) would broadcast into three markers
+    per frame; both entry points refuse them at the call, naming the shape, and no folder is made."""
+    qpos = np.repeat(hum.model.qpos0[None], 3, 0)
+    flat = np.zeros((3, 3))
+    out = tmp_path / "videos" / "m.mp4"
+    with pytest.raises(UserError, match=r"markers must have shape \(T, K, 3\), not \(3, 3\)"):
+        render_trajectory(hum, qpos, out, 30.0, markers=flat)
+    assert not out.parent.exists()
+    with pytest.raises(UserError, match=r"markers must have shape \(T, K, 3\), not \(3, 3\)"):
+        trajectory_frames(hum, qpos, markers=flat)  # at the call, not at the first frame drawn
 
 
 def test_a_ball_model_renders_as_its_humanoid(hum, tmp_path):

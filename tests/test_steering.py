@@ -102,7 +102,7 @@ def test_given_starts_lie_inside_their_clips(hum, lib):
     mdp = task_mdp(SteeringTask, SteeringTaskConfig(), hum, lib, 2, base="current")
     mdp.reset(clips=[0, 1], frames=[0, 2])
     assert mdp.task.steps.tolist() == [0, 0]
-    with pytest.raises(UserError, match="outside their clips"):
+    with pytest.raises(UserError, match=r"^steering task: start frames \[\d+\] are outside their clips"):
         mdp.reset(clips=[0, 1], frames=[0, int(lib.lengths[1])])
 
 

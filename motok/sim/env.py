@@ -64,17 +64,21 @@ class SimConfig:
     def filter_b(self) -> float:
         return 1.0 if self.target_filter is None else float(self.target_filter)
 
-    def same_world(self, parent: "SimConfig", who: str) -> "SimConfig":
+    def same_world(self, parent: "SimConfig", who: str, humanoid_hz: float | None = None) -> "SimConfig":
         """Act in the world ``parent`` was trained in (a student in its teacher's, a task policy
         in its prior's): its PD-target filter and control rate unless this config sets them, and a
         different one refused, since the parent's actions mean other motion through another filter
-        or held for another time. (A parent at the humanoid's rate, ``control_hz`` None, is not
-        compared: the humanoid is not known here.)"""
+        or held for another time. A parent at the humanoid's rate (``control_hz`` None) acts at
+        ``humanoid_hz``, the shared humanoid's: a rate this config sets is compared with that one
+        (and not compared when it is not given), and an unset one stays unset, as the parent's."""
         if self.control_hz is None:
             self.control_hz = parent.control_hz
-        elif parent.control_hz is not None and float(self.control_hz) != float(parent.control_hz):
-            raise UserError(f"env.control_hz={self.control_hz:g} but {who} acts at env.control_hz="
-                            f"{parent.control_hz:g}: leave it unset to act in the same world")
+        else:
+            theirs = parent.control_hz if parent.control_hz is not None else humanoid_hz
+            if theirs is not None and float(self.control_hz) != float(theirs):
+                at = "env.control_hz=" if parent.control_hz is not None else "its humanoid's rate, "
+                raise UserError(f"env.control_hz={self.control_hz:g} but {who} acts at {at}{float(theirs):g}: "
+                                "leave it unset to act in the same world")
         if self.target_filter is None:
             self.target_filter = parent.filter_b
         elif self.filter_b != parent.filter_b:

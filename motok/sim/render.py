@@ -161,9 +161,9 @@ def render_trajectory(hum: Humanoid, qpos: np.ndarray, out, fps: float, *, title
     out = Path(out)
     if out.suffix.lower() not in SUFFIXES:
         raise UserError(f"cannot render to {out.name!r}: use one of {', '.join(SUFFIXES)}")
+    mk = _markers(markers, marker_rgba, marker_radius)  # refused before anything is made
     out.parent.mkdir(parents=True, exist_ok=True)
     size = _even(size)
-    mk = _markers(markers, marker_rgba, marker_radius)
     mujoco = backend in ("auto", "mujoco")
     frames = _mujoco_frames(hum, qpos, size, ghost, title, mk, required=backend == "mujoco") if mujoco else None
     if frames is None:  # asked for, or MuJoCo cannot draw here: the stick figure of the body positions

@@ -193,7 +193,8 @@ def train(cfg: ExpertConfig, run, hum: Humanoid, lib: ReferenceLibrary, *, resum
         if runs.mjcf_hash(ihum) != runs.mjcf_hash(hum):
             raise UserError(f"--init {init}: that expert was trained on another humanoid (MJCF hash differs)")
         saw = bool(meta["config"].get("amp", {}).get("feet", False))
-        if "disc.mean" in start and saw != cfg.amp.feet:
+        # only a discriminator carried over must see what it saw; a run without one loads none
+        if "disc.mean" in start and cfg.amp.enabled and cfg.w_style != 0 and saw != cfg.amp.feet:
             raise UserError(f"--init {init}: its discriminator was trained with amp.feet={str(saw).lower()}, this "
                             f"recipe has amp.feet={str(cfg.amp.feet).lower()} (another input size); set it to match")
         extra = runs.link_record("init", init, KIND)

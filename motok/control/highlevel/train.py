@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from motok.config import checked
+from motok.config import checked, from_dict
 from motok.control import runs
 from motok.control.highlevel.evaluate import evaluate_policy
 from motok.control.highlevel.policy import (KIND, TaskTrainConfig, action_space, build_high_level, task_codebooks,
@@ -33,6 +33,7 @@ from motok.control.rl.rollout import Collector
 from motok.control.tasks import registry
 from motok.distributed import Dist
 from motok.errors import UserError
+from motok.sim.env import SimConfig
 from motok.sim.humanoid import Humanoid
 from motok.sim.reference import ReferenceLibrary
 
@@ -113,9 +114,7 @@ def train(cfg: TaskTrainConfig, run, prior_run, lib: ReferenceLibrary, *, resume
     pcfg, hum, model, _ = load_prior(prior_run)
     cfg.check()
     resolve_codebooks(cfg, run, model, resume)
-    if cfg.env.control_hz is None:
-        cfg.env.control_hz = pcfg.env.control_hz
-    cfg.env.same_world(pcfg.env, f"the prior {prior_run}")
+    cfg.env.same_world(pcfg.env, f"the prior {prior_run}", hum.control_hz)
 
     def eval_hook(tr: TaskTrainer) -> dict:
         res = evaluate_policy(cfg, hum, lib, model, pcfg.action.scale, tr.ac, cfg.eval_episodes, cfg.seed + 12345)
@@ -145,6 +144,8 @@ def train_from_prior(cfg: TaskTrainConfig, prior_run, run, *, task: str | None =
     if saved is not None and saved["extra"]["task"] != cfg.task:
         raise UserError(f"{run} holds a {saved['extra']['task']!r} policy; cannot resume it as {cfg.task!r}")
     pmeta, _, hum = runs.load_run(prior_run, PRIOR_KIND)
-    hz = cfg.env.control_hz or pmeta["config"]["env"]["control_hz"]
-    src, lib = runs.run_library(prior_run, pmeta, hum, hz, data, clips, split)
+    # The prior's world (control rate, target filter) unless the recipe sets it, another refused
+    # before the library is built at that rate; train() holds it again for callers from Python.
+    cfg.env.same_world(from_dict(SimConfig, pmeta["config"]["env"]), f"the prior {prior_run}", hum.control_hz)
+    src, lib = runs.run_library(prior_run, pmeta, hum, cfg.env.control_hz, data, clips, split)
     return train(cfg, run, prior_run, lib, resume=resume, until=until, data=src)

@@ -100,15 +100,17 @@ def given_starts(lib: ReferenceLibrary, clips, frames, n: int) -> tuple[np.ndarr
     return c, np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,)).copy()
 
 
-def free_starts(lib: ReferenceLibrary, n: int, rng, clips=None, frames=None):
+def free_starts(lib: ReferenceLibrary, n: int, rng, clips=None, frames=None, who: str = "task"):
     """Start clips and frames ``(n,)`` of a task that reads no reference ahead (navigation,
     steering): drawn from ``rng`` (:func:`sample_starts`) unless ``clips`` are given
-    (:func:`given_starts`), whose ``frames`` must lie inside them; where the library is."""
+    (:func:`given_starts`), whose ``frames`` must lie inside them (``who``, the task, begins the
+    refusal); where the library is."""
     if clips is None:
         return sample_starts(lib, n, rng, 1)
     c, f = given_starts(lib, clips, frames, n)
     lengths = host_lengths(lib)
     bad = (f < 0) | (f >= lengths[c])
     if bad.any():
-        raise UserError(f"start frames {f[bad].tolist()} are outside their clips (lengths {lengths[c[bad]].tolist()})")
+        raise UserError(f"{who}: start frames {f[bad].tolist()} are outside their clips "
+                        f"(lengths {lengths[c[bad]].tolist()})")
     return like(lib.starts, c), like(lib.starts, f)

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from motok.checkpoint import read_meta
+from motok.config import from_dict
 from motok.control import runs
 from motok.control.expert.model import KIND as EXPERT_KIND
 from motok.control.expert.model import load_expert
@@ -46,6 +47,7 @@ from motok.control.rl.networks import ActorCritic
 from motok.control.tasks.imitation import eval_metrics, evaluate, subset
 from motok.distributed import Dist, average_gradients, world_size
 from motok.errors import UserError
+from motok.sim.env import SimConfig
 from motok.sim.humanoid import Humanoid, load_humanoid
 from motok.sim.reference import ReferenceLibrary
 
@@ -209,7 +211,7 @@ def train(cfg: DistillConfig, run, expert_run, lib: ReferenceLibrary, *, resume:
           until: int | None = None, data=None, command: str | None = None) -> dict:
     """Distil the expert in ``expert_run`` into a ``cfg.prior.kind`` prior in ``run`` on the clips of ``lib``."""
     ecfg, hum, expert, _ = load_expert(expert_run)
-    cfg.env.same_world(ecfg.env, f"the expert {expert_run}")
+    cfg.env.same_world(ecfg.env, f"the expert {expert_run}", hum.control_hz)
     names = subset(lib.names, cfg.eval_per_group) if cfg.eval_per_group else list(lib.names)
     ids = np.array([lib.index(x) for x in names])
 
@@ -242,7 +244,9 @@ def train_from_expert(cfg: DistillConfig, expert_run, run, *, prior: str | None 
     cfg.prior.check()
     hum = load_humanoid(expert_run / "humanoid.xml")
     emeta = read_meta(expert_run, EXPERT_KIND)
-    # at the expert's control rate unless the recipe sets one (train() refuses a different one)
-    hz = cfg.env.control_hz or emeta["config"].get("env", {}).get("control_hz")
-    src, lib = runs.run_library(expert_run, emeta, hum, hz, data, clips, split)
+    # The expert's world (control rate, target filter) unless the recipe sets it, another refused
+    # before the library is built at that rate; train() holds it again for callers from Python.
+    cfg.env.same_world(from_dict(SimConfig, emeta["config"].get("env", {})), f"the expert {expert_run}",
+                       hum.control_hz)
+    src, lib = runs.run_library(expert_run, emeta, hum, cfg.env.control_hz, data, clips, split)
     return train(cfg, run, expert_run, lib, resume=resume, until=until, data=src)

@@ -139,7 +139,7 @@ class NavigationTask(Task):
         """Reference starts at random clips and frames from the task's generator, unless
         ``clips``/``frames`` (names or indices; frame 0 by default) are given; then a first target."""
         L = self.lib
-        c, f = free_starts(L, len(ids), self.rng, clips, frames)
+        c, f = free_starts(L, len(ids), self.rng, clips, frames, "navigation task")
         self.env.set_state(ids, *reference_state(L, c, f))
         self.clip[ids], self.frame[ids], self.steps[ids], self.target_index[ids] = c, f, 0, 0
         self._new_targets(ids)

@@ -159,7 +159,7 @@ class SteeringTask(Task):
         """Reference starts at random clips and frames from the task's generator (or the given
         ``clips``, frame ``frames`` or 0), then a first command."""
         L = self.lib
-        c, f = free_starts(L, len(ids), self.rng, clips, frames)
+        c, f = free_starts(L, len(ids), self.rng, clips, frames, "steering task")
         self.env.set_state(ids, *reference_state(L, c, f))
         self.steps[ids] = 0
         self._new_commands(ids)

@@ -10,13 +10,13 @@ from motok.ranges import In
 
 @dataclass
 class OptimConfig:
-    lr: In[float, "> 0"] = 2e-4
-    betas: In[list[float], "[0, 1)"] = field(default_factory=lambda: [0.9, 0.99])
-    weight_decay: In[float, ">= 0"] = 0.0
+    lr: In[float, "> 0"] = 2e-4  # AdamW's peak learning rate, reached at the end of the warm-up
+    betas: In[list[float], "[0, 1)"] = field(default_factory=lambda: [0.9, 0.99])  # AdamW (beta1, beta2)
+    weight_decay: In[float, ">= 0"] = 0.0  # AdamW's decoupled decay (the GPT spares biases and norms)
     warmup: In[int, ">= 0"] = 200  # linear warm-up iterations
     milestones: In[list[int], ">= 0"] = field(default_factory=list)  # absolute iterations where lr *= gamma
-    gamma: In[float, "> 0"] = 0.05
-    grad_clip: In[float, ">= 0"] = 0.0  # 0 = off
+    gamma: In[float, "> 0"] = 0.05  # lr factor at each milestone (T2M-GPT: 0.05)
+    grad_clip: In[float, ">= 0"] = 0.0  # global gradient-norm clip (0 = off)
 
 
 def lr_factor(it: int, cfg: OptimConfig) -> float:

@@ -52,21 +52,23 @@ from motok.workers import die_with_parent
 class PreprocessConfig:
     # Keys are named as the options that set them (-d/--data, --clips).
     RENAMED_KEYS: ClassVar[dict[str, str]] = {"inputs": "data", "pattern": "clips"}
+    # Inputs (-d): BVH or .npy files, folders, archives (.zip, .tar.*) or one HumanML3D-layout
+    # folder; a relative path that does not exist here is taken relative to the data root.
     data: list[str] = field(default_factory=lambda: ["bandai-namco/bandai-namco-2.tar.xz"])
     # "auto": the Bandai-Namco annotations for Bandai-Namco inputs only; "none" (or None): no
     # captions, split "none"; else a HumanML3D-layout folder (relative to the data root or not).
     annotations: str | None = "auto"
     clips: str = "*"  # clip-name glob; also decides which split entries must be present
     skeleton: str | None = None  # built-in name or YAML path; None: detect from joint names
-    fps: In[float, "> 0"] = 20.0
+    fps: In[float, "> 0"] = 20.0  # target frame rate every clip is resampled to (HumanML3D: 20)
     # The frame rate of .npy joint arrays, which store none (HumanML3D's new_joints are 20 fps);
     # they are resampled from it to ``fps``. A note says which rate was assumed.
     npy_fps: In[float, "> 0"] = 20.0
     scale: In[float | None, "> 0"] = None  # source units to metres; None: guess from the leg length
-    legacy: bool = False
+    legacy: bool = False  # reproduce the official HumanML3D numbers, quirks included (docs/features.md)
     reference_clip: str | None = None  # target bone lengths; None: first train clip by name
-    skip_bad: bool = False
-    jobs: In[int, ">= 1"] = 1
+    skip_bad: bool = False  # list bad clips in the artifact's provenance and go on, instead of stopping at one
+    jobs: In[int, ">= 1"] = 1  # worker processes for parsing and feature extraction
     limit: In[int | None, ">= 1"] = None  # keep the first N matching clips (smoke runs); skips the split check
     min_frames: In[int, ">= 2"] = 4  # at the target fps, after resampling (features are frame differences)
 

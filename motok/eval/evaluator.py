@@ -50,27 +50,27 @@ class EvaluatorConfig:
     # any name motok.text.encoders knows: bow | minilm | clip. bow: no pretrained weights, so
     # the evaluator's text side shares nothing with a GPT on minilm or clip (docs/eval.md).
     text_encoder: str = "bow"
-    embed_dim: In[int, ">= 1"] = 128
-    width: In[int, ">= 1"] = 128
-    layers: In[int, ">= 1"] = 2
-    heads: In[int, ">= 1"] = 4
-    dropout: In[float, "[0, 1)"] = 0.1
-    temperature: In[float, "> 0"] = 0.1
+    embed_dim: In[int, ">= 1"] = 128  # the shared embedding both towers end in (even)
+    width: In[int, ">= 1"] = 128  # the motion encoder's channels and the text MLP's hidden size (even)
+    layers: In[int, ">= 1"] = 2  # transformer layers of the motion encoder
+    heads: In[int, ">= 1"] = 4  # its attention heads (must divide width)
+    dropout: In[float, "[0, 1)"] = 0.1  # in the motion transformer and the text MLP
+    temperature: In[float, "> 0"] = 0.1  # the InfoNCE temperature, fixed (TMR's 0.1)
     # Which shared attributes make an in-batch pair no negative: caption text, label set.
     filter_negatives: list[str] = field(default_factory=lambda: ["caption", "label"])
-    iterations: In[int, ">= 1"] = 2000
-    batch_size: In[int, ">= 1"] = 64
-    lr: In[float, "> 0"] = 3e-4
-    weight_decay: In[float, ">= 0"] = 0.01
-    warmup: In[int, ">= 0"] = 100
+    iterations: In[int, ">= 1"] = 2000  # AdamW steps, one batch each
+    batch_size: In[int, ">= 1"] = 64  # clips per batch, each with one of its captions: the in-batch pairs (>= 2)
+    lr: In[float, "> 0"] = 3e-4  # AdamW's peak learning rate, after the warm-up; cosine decay to 0 at the end
+    weight_decay: In[float, ">= 0"] = 0.01  # AdamW's decoupled weight decay
+    warmup: In[int, ">= 0"] = 100  # iterations of linear warm-up
     min_frames: In[int, ">= 1"] = 16  # shortest random crop
     max_frames: In[int, ">= 1"] = 160  # longest training crop (bounds padding; Guo uses 196)
     # a crop keeps at least this share of the clip, so it still matches the caption
     crop_min_fraction: In[float, "(0, 1]"] = 0.7
-    split: str = "train"
+    split: str = "train"  # the data set's split it trains on
     report_split: str = "test"  # retrieval reported on this split after training
-    seed: In[int, ">= 0"] = 0
-    log_every: In[int, ">= 1"] = 50
+    seed: In[int, ">= 0"] = 0  # weights, batches, captions and crops drawn
+    log_every: In[int, ">= 1"] = 50  # iterations per metrics.jsonl row (their mean loss); the last is always logged
     threads: In[int, ">= 0"] = 1  # torch threads; on a shared 2-core machine one thread ran 5x faster than two
 
 

@@ -48,8 +48,8 @@ class LabelsConfig:
     crops: In[int, ">= 0"] = 4  # extra random crops (60-100 % of the clip) per training clip
     weight_decay: In[float, ">= 0"] = 1e-2  # L2 penalty on the weights (mean over samples + wd/2 |W|^2)
     max_iter: In[int, ">= 1"] = 200  # L-BFGS iterations
-    seed: In[int, ">= 0"] = 0
-    threads: In[int, ">= 0"] = 1
+    seed: In[int, ">= 0"] = 0  # the training crops drawn
+    threads: In[int, ">= 0"] = 1  # torch threads (0: torch's default)
 
 
 def check_config(cfg: LabelsConfig) -> None:

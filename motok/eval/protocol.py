@@ -27,22 +27,22 @@ from motok.ranges import In
 
 @dataclass
 class T2MConfig:
-    split: str = "test"
-    repeats: In[int, ">= 1"] = 20
+    split: str = "test"  # the data set's split whose real motion is the reference (--split)
+    repeats: In[int, ">= 1"] = 20  # draws of captions and crops per row; mean and 95% CI over them (reference: 20)
     batch: In[int, ">= 1"] = 32  # R-precision batch: 1 true caption and 31 others
-    top_k: In[int, ">= 1"] = 3
-    diversity_times: In[int, ">= 1"] = 300
+    top_k: In[int, ">= 1"] = 3  # R-precision reported at 1..top_k (Table 1: R@1, R@2, R@3)
+    diversity_times: In[int, ">= 1"] = 300  # random motion pairs Diversity averages over (reference: 300)
     mm_pairs: In[int, ">= 1"] = 10  # MModality pairs per caption (reference: 10 of 30 samples)
     # MModality's captions drawn with replacement in each repeat: samples are generated once, not
     # per repeat as the reference does, so the CI must carry the spread between captions.
     mm_resample: bool = True
     unit_crop: bool = True  # the reference loader's crop to a multiple of 4 frames
-    seed: In[int, ">= 0"] = 0
-    physical: bool = True
+    seed: In[int, ">= 0"] = 0  # the repeats' draws, and the captions and samples of a --gpt row
+    physical: bool = True  # add the physical metrics (skating, penetration, floating, jitter) per row
     # "unseen": only the split's captions that do not occur word for word in train_split
     # (motok.eval.captions); clips without one are left out of every row and of the reference.
     captions: str = "all"
-    train_split: str = "train"
+    train_split: str = "train"  # the split "unseen" compares with, and the caption overlap reported
     # Rows holding clips of the same names (a tracked file beside what it tracked) scored on the
     # names all of them hold (motok.eval.sets.common_clips); the reference statistics stay whole.
     common_clips: bool = False
@@ -52,12 +52,12 @@ class T2MConfig:
     # gen_sets = repeats; fewer sets are reused in turn) and the MModality samples.
     gen_sets: In[int, ">= 1"] = 20
     gt_length: bool = False  # target the ground-truth length instead of stopping at End
-    mm_captions: In[int, ">= 1"] = 100
-    mm_samples: In[int, ">= 1"] = 30
-    temperature: In[float, "> 0"] = 1.0
-    top_k_sampling: In[int | None, ">= 1"] = None
-    top_p: In[float | None, "(0, 1]"] = None
-    gen_batch: In[int, ">= 1"] = 64
+    mm_captions: In[int, ">= 1"] = 100  # MModality: captions drawn (at most the split's; reference: 100)
+    mm_samples: In[int, ">= 1"] = 30  # MModality: samples per caption (reference: 30; 1 leaves MModality out)
+    temperature: In[float, "> 0"] = 1.0  # the GPT's softmax temperature when sampling
+    top_k_sampling: In[int | None, ">= 1"] = None  # sample among the k likeliest codes only (None: all)
+    top_p: In[float | None, "(0, 1]"] = None  # nucleus sampling: the likeliest codes up to this mass (None: off)
+    gen_batch: In[int, ">= 1"] = 64  # GPT samples per batch (speed and memory: each sample has its own seed)
     threads: In[int, ">= 0"] = 1  # torch threads (one is fastest on a shared 2-core machine)
 
 

@@ -48,12 +48,12 @@ from motok.ranges import In
 @dataclass
 class GPTConfig:
     """Sizes; the default is a small CPU model. ``recipes/gpt/paper.yaml`` has 18 x 1024 x 16."""
-    num_layers: In[int, ">= 1"] = 4
-    dim: In[int, ">= 1"] = 192
-    heads: In[int, ">= 1"] = 4
+    num_layers: In[int, ">= 1"] = 4  # transformer blocks (paper: 18)
+    dim: In[int, ">= 1"] = 192  # width of the embeddings and the residual stream (paper: 1024)
+    heads: In[int, ">= 1"] = 4  # attention heads; must divide dim (paper: 16)
     block_size: In[int, ">= 2"] = 51  # positions: the text + up to 50 codes (10 s at 20 fps, rate 4), as the paper
-    ff_mult: In[int, ">= 1"] = 4
-    dropout: In[float, "[0, 1)"] = 0.1
+    ff_mult: In[int, ">= 1"] = 4  # the MLP's hidden width, in multiples of dim (paper: 4)
+    dropout: In[float, "[0, 1)"] = 0.1  # on the embeddings, the attention weights and each residual branch (paper: 0.1)
     # Token-level conditioning: 0 = one pooled sentence vector at position 0 (the paper);
     # P > 0 = the encoder's P per-token outputs as a prefix of P positions (a ``*_tokens`` encoder).
     text_tokens: In[int, ">= 0"] = 0
@@ -213,7 +213,7 @@ register_kind(KIND, (1,))
 
 @dataclass
 class TrainConfig:
-    model: GPTConfig = field(default_factory=GPTConfig)
+    model: GPTConfig = field(default_factory=GPTConfig)  # the transformer's sizes
     # The paper's GPT optimizer: AdamW (0.5, 0.99), lr 1e-4, no warm-up (T2M-GPT Sec. 4.1).
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=[0.5, 0.99], weight_decay=1e-6,
                                                                    warmup=0))
@@ -227,20 +227,20 @@ class TrainConfig:
     recombine: In[int, ">= 0"] = 0  # new captions per group of clips, recombined from the captions' own phrases
     # probability of dropping a word, in word_dropout_variants copies per caption
     word_dropout: In[float, "[0, 1)"] = 0.0
-    word_dropout_variants: In[int, ">= 0"] = 0
+    word_dropout_variants: In[int, ">= 0"] = 0  # k: word-dropped copies of every caption (0: word dropout off)
     text_noise: In[float, ">= 0"] = 0.0  # Gaussian noise on the embedding, as a fraction of its norm
     caption_dropout: In[float, "[0, 1)"] = 0.0  # share of steps' rows conditioned on the learned null text (for CFG)
     guidance: In[float, ">= 0"] = 1.0  # classifier-free guidance scale sampling uses by default (needs caption_dropout)
     # sampling default: condition a new sentence on its k nearest training captions (motok.gpt.snap)
     snap: In[int, ">= 0"] = 0
-    iterations: In[int, ">= 1"] = 2000
+    iterations: In[int, ">= 1"] = 2000  # optimiser steps, one batch each (the paper's: 300K)
     batch_size: In[int, ">= 1"] = 64  # global: split evenly over the ranks
-    split: str = "train"
+    split: str = "train"  # the tokens artifact's split the sequences come from
     val_split: str = "val"  # "" = no validation loss
-    seed: In[int, ">= 0"] = 123
-    log_every: In[int, ">= 1"] = 50
-    eval_every: In[int, ">= 1"] = 250
-    save_every: In[int, ">= 1"] = 500
+    seed: In[int, ">= 0"] = 123  # weights, batches, code corruption and caption augmentation
+    log_every: In[int, ">= 1"] = 50  # iterations per metrics.jsonl row (their mean); the last is always logged
+    eval_every: In[int, ">= 1"] = 250  # iterations between val_* losses, taken on logged iterations only
+    save_every: In[int, ">= 1"] = 500  # iterations between checkpoints; the last is always saved
     device: str = "auto"  # auto | cpu | cuda
     threads: In[int, ">= 0"] = 0  # torch intra-op threads; 0 = torch's default
 

@@ -65,6 +65,7 @@ class QuantizerConfig:
     # ema_reset); "kmeans": Lloyd's algorithm on the first batch (same as kmeans_init=True).
     init: str = "uniform"
     kmeans_init: bool = False      # older spelling of init="kmeans" (the priors' configs use it)
+    # fsq: the levels L_i of each channel, one entry a channel: prod(L_i) codes (Mentzer et al.'s [8, 5, 5, 5]: 1000)
     fsq_levels: In[list[int], ">= 2"] = field(default_factory=lambda: [8, 5, 5, 5])
 
 

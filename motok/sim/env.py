@@ -42,9 +42,9 @@ from motok.sim.steppers import Stepper, make_stepper
 
 @dataclass
 class SimConfig:
-    num_envs: In[int, ">= 1"] = 16
+    num_envs: In[int, ">= 1"] = 16  # humanoids simulated side by side, each its own episode
     control_hz: In[float | None, "> 0"] = None  # None: the humanoid's (30 Hz by default)
-    nthread: In[int, ">= 0"] = 2
+    nthread: In[int, ">= 0"] = 2  # CPU threads the C MuJoCo steppers use (0 and 1: one; ignored by warp)
     stepper: str = "auto"  # batch (MuJoCo >= 4.0), rollout, or auto: batch when available (backend mujoco)
     backend: str = "mujoco"  # or "warp": MuJoCo Warp (pip install motok[gpu]), the same MJCF batched on a device
     device: str = "cpu"  # the physics device; "cuda" (or "cuda:1") needs backend warp

@@ -52,16 +52,16 @@ class HumanoidConfig:
     total_mass: In[float, "> 0"] = 65.0  # kg; densities are scaled to reach it
     # 4 substeps per 30 Hz control step; docs/sim.md has the stability/speed measurements
     timestep: In[float, "> 0"] = 1.0 / 120.0
-    control_hz: In[float, "> 0"] = 30.0
-    range_margin_deg: In[float, "[0, 180]"] = 20.0
+    control_hz: In[float, "> 0"] = 30.0  # PD targets per second, round(1 / (control_hz timestep)) substeps each
+    range_margin_deg: In[float, "[0, 180]"] = 20.0  # joint limits: the data's angle range widened by this each side
     stiffness_per_kg: In[float, ">= 0"] = 15.0  # Nm/rad per kg moved: the ankle then holds ~1000 Nm/rad, > m g l
     min_stiffness: In[float, ">= 0"] = 40.0  # Nm/rad; keeps light distal joints (elbows, neck) from being floppy
     derivative_time: In[float, ">= 0"] = 0.1  # kv = derivative_time * kp (PHC's kp/kd ratio of 10)
     # The ankles' stiffness (and so damping) as a share of the mass rule's: a compliant ankle lets
     # the sole settle flat on the floor instead of holding the reference's foot angle against it.
     ankle_stiffness_scale: In[float, "> 0"] = 1.0
-    armature: In[float, ">= 0"] = 0.02
-    friction: In[float, ">= 0"] = 1.0
+    armature: In[float, ">= 0"] = 0.02  # kg m^2, MuJoCo's joint armature: inertia added to every joint's own
+    friction: In[float, ">= 0"] = 1.0  # sliding friction coefficient of every geom, the floor's too
     # Physics cost: benchmarks/physics.py steps states recorded from PD tracking of walk, run, turn
     # and arm clips, falls included, under each option (table in docs/sim.md). Together the
     # defaults below are 1.19-1.22x the raw mj_step rate of the previous build (every pair
@@ -69,7 +69,7 @@ class HumanoidConfig:
     # Newton takes 2.8 iterations on average and at most 9 on those states: 10 never binds (6 binds
     # on 2 % of the steps), so the cap bounds the worst step without changing the physics.
     solver_iterations: In[int, ">= 1"] = 10
-    ls_iterations: In[int, ">= 1"] = 5
+    ls_iterations: In[int, ">= 1"] = 5  # the most line-search iterations per solver iteration (MuJoCo's option)
     # "data": the floor plus only the part pairs that touch in the data (arms vs trunk, arms vs
     # thighs, arm vs arm, leg vs leg; mjcf.contact_bits). What it drops (head, neck and clavicles vs
     # anything, arms vs shins and feet, trunk vs legs) touches in 0.01 % of 190k reference frames

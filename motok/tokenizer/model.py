@@ -36,7 +36,7 @@ class ModelConfig:
     down_t: In[int, ">= 0"] = 2  # number of stride-2 stages: temporal rate 2**down_t
     depth: In[int, ">= 1"] = 3  # residual blocks per stage
     dilation_growth: In[int, ">= 1"] = 3  # dilations growth**k, applied largest first: (9, 3, 1)
-    activation: str = "relu"
+    activation: str = "relu"  # relu (T2M-GPT) | silu | gelu: the encoder's, decoder's and residual blocks' nonlinearity
 
 
 class ResBlock(nn.Module):
@@ -215,20 +215,20 @@ register_kind(KIND, (1,))
 
 @dataclass
 class TrainConfig:
-    model: ModelConfig = field(default_factory=ModelConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)  # the convolutional encoder and decoder
     # init="t2m_gpt": codebooks start as in T2M-GPT's code (uniform for vq, the first batch for
     # the EMA and reset kinds); "uniform" is the start of motok 0.1.0 for every kind.
     quantizer: QuantizerConfig = field(
         default_factory=lambda: QuantizerConfig(codebook_size=512, dim=128, init="t2m_gpt"))
-    loss: LossConfig = field(default_factory=LossConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    iterations: In[int, ">= 1"] = 2000
+    loss: LossConfig = field(default_factory=LossConfig)  # the terms of the training loss and their weights
+    optim: OptimConfig = field(default_factory=OptimConfig)  # AdamW and its schedule (paper: 300K its, x0.05 at 200K)
+    iterations: In[int, ">= 1"] = 2000  # optimiser steps, one batch each (the paper's: 300K)
     batch_size: In[int, ">= 1"] = 64  # global: split evenly over the ranks
     window: In[int, ">= 1"] = 64  # frames per training crop
-    split: str = "train"
-    seed: In[int, ">= 0"] = 123
-    log_every: In[int, ">= 1"] = 50
-    save_every: In[int, ">= 1"] = 500
+    split: str = "train"  # the data set's split the crops come from
+    seed: In[int, ">= 0"] = 123  # weights, codebook starts and resets, and the crops drawn
+    log_every: In[int, ">= 1"] = 50  # iterations per metrics.jsonl row (their mean); the last is always logged
+    save_every: In[int, ">= 1"] = 500  # iterations between checkpoints; the last is always saved
     device: str = "auto"  # auto | cpu | cuda
     threads: In[int, ">= 0"] = 0  # torch intra-op threads; 0 = torch's default
 

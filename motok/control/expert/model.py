@@ -49,7 +49,7 @@ class ExpertConfig:
     eval_per_group: In[int, ">= 0"] = 0  # eval_* on this many clips per content x style (0: every training clip)
     torch_threads: In[int, ">= 1"] = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
     update_threads: In[int, ">= 0"] = 0  # during the PPO and discriminator updates (0: torch_threads)
-    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=64))  # the batched physics it trains in
     task: ImitationTaskConfig = field(default_factory=ImitationTaskConfig)  # the imitation task
     action: ActionConfig = field(default_factory=ActionConfig)  # the action map (residual PD targets)
     ppo: PPOConfig = field(default_factory=PPOConfig)  # the PPO update

@@ -51,7 +51,7 @@ class PerturbConfig:
     gravity_compensation: bool = True  # aim the ballistic arc (5 cm of drop over 1 m at 10 m/s)
     flight_seconds: In[float, "> 0"] = 0.5  # how long a ball must stay in the world: it arrives within 0.1 s
     pool_size: In[int | None, ">= 1"] = None  # balls per environment; None: ceil(flight_seconds / period) + 1
-    recovery_seconds: In[float, "> 0"] = 3.0
+    recovery_seconds: In[float, "> 0"] = 3.0  # s: a hit is recovered if the head is above fall_height this long after
     fall_height: In[float, "> 0"] = 0.5  # m, head height
     min_dv: In[float, ">= 0"] = 0.05  # m/s: a velocity change beyond gravity's that means a contact
     # m: how near the humanoid the ball's path must pass for the contact to be a hit

@@ -160,11 +160,11 @@ class TaskTrainConfig:
     codebooks: In[int | None, ">= 1"] = None
     save_every: In[int, ">= 1"] = 50  # iterations between checkpoints
     eval_every: In[int, ">= 0"] = 0  # iterations between task evaluations logged as eval_* (0: never)
-    eval_episodes: In[int, ">= 1"] = 64
+    eval_episodes: In[int, ">= 1"] = 64  # episodes of each of those evaluations
     deterministic_eval: bool = True  # evaluate with the most likely action (argmax codes, the mean offset)
     torch_threads: In[int, ">= 1"] = 1  # during rollouts: MuJoCo has the cores
     update_threads: In[int, ">= 0"] = 0  # during the PPO update (0: torch_threads)
-    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))  # the batched physics of the rollouts
     tasks: registry.TaskConfigs = field(default_factory=registry.TaskConfigs)  # every task's settings: tasks.NAME.FIELD
     ppo: PPOConfig = field(default_factory=paper_ppo)  # the update (Tables 6-8's values by default)
     net: HighLevelNetConfig = field(default_factory=HighLevelNetConfig)  # the high-level policy and critic

@@ -62,7 +62,7 @@ register_kind(KIND, (1,))
 @dataclass
 class PriorConfig:
     kind: str = ""  # one of KINDS; `motok control distill --prior` sets it
-    latent_dim: In[int, ">= 1"] = 64
+    latent_dim: In[int, ">= 1"] = 64  # D: the latent z's size, and the codebooks' code dimension
     # hidden sizes of f_phi(s, s~) -> z
     posterior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     prior_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])  # hidden sizes of f_theta(s) -> z_p
@@ -70,7 +70,7 @@ class PriorConfig:
     decoder_hidden: In[list[int], ">= 1"] = field(default_factory=lambda: [256, 256])
     activation: str = "elu"  # relu | elu | tanh | silu
     log_std_min: In[float, "any"] = -5.0  # continuous: log-std heads clamped to [min, max] (PHC's bounds)
-    log_std_max: In[float, "any"] = 1.0
+    log_std_max: In[float, "any"] = 1.0  # the upper bound of that clamp (PHC's)
     num_codebooks: In[int, ">= 1"] = 8  # discrete+ and hybrid: residual codebooks
     codebook_size: In[int, ">= 1"] = 128  # codes per residual codebook
     vq_codebook_size: In[int, ">= 1"] = 1024  # discrete and hybrid-vq: the single codebook
@@ -327,16 +327,16 @@ class DistillConfig:
     save_every: In[int, ">= 1"] = 50  # iterations between checkpoints (every one resumes exactly)
     eval_every: In[int, ">= 0"] = 0  # iterations between imitation evaluations of the student, logged as eval_*
     eval_per_group: In[int, ">= 0"] = 0  # eval_* on this many clips per content x style (0: every clip)
-    eval_batch: In[int, ">= 1"] = 256
+    eval_batch: In[int, ">= 1"] = 256  # clips played side by side in an imitation evaluation (speed only)
     torch_threads: In[int, ">= 1"] = 1  # during rollouts: 2 fights MuJoCo's worker threads on a 2-core machine
     update_threads: In[int, ">= 0"] = 0  # during the supervised update, while the physics is idle (0: torch_threads)
     horizon: In[int, ">= 1"] = 32  # steps per environment per iteration
     epochs: In[int, ">= 1"] = 4  # passes over each iteration's data
     minibatch_size: In[int, ">= 1"] = 1024  # samples; rounded down to whole environment columns of `horizon` steps
     lr: In[float, "> 0"] = 2e-4  # the authors' distillation learning rate
-    max_grad_norm: In[float, "> 0"] = 1.0
+    max_grad_norm: In[float, "> 0"] = 1.0  # global gradient-norm clip of the student's update
     action_noise: In[float, ">= 0"] = 0.055  # std of the noise on the student's actions while collecting (rad)
-    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))
+    env: SimConfig = field(default_factory=lambda: SimConfig(num_envs=128))  # the batched physics of the rollouts
     # the imitation task; goal_frames must be the expert's
     task: ImitationTaskConfig = field(default_factory=lambda: ImitationTaskConfig(termination="mean"))
     # the student's action map: residual on the current pose

@@ -40,7 +40,7 @@ class HMDTaskConfig:
     episode_seconds: In[float, "> 0"] = 5.0  # an episode's length (a head trajectory)
     goal_frames: In[int, ">= 1"] = 5  # reference head frames ahead in the goal (the fork's numNextObsSteps)
     termination_distance: In[float, "> 0"] = 1.0  # m, head to reference head (paper C.2; the fork's recipe: 1.5)
-    early_termination: bool = True
+    early_termination: bool = True  # off track ends the episode (false: info["off_track"] only)
     reward: HeadRewardConfig = field(default_factory=HeadRewardConfig)  # the head reward's weights and exponents
 
     def __post_init__(self):

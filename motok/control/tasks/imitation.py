@@ -50,7 +50,7 @@ class ImitationTaskConfig:
     goal_frames: In[int, ">= 1"] = 1  # K reference frames ahead in the goal (Eq. 9)
     termination: str = "any"  # "any" body beyond the distance, or the "mean" over bodies (PHC's failure test)
     termination_distance: In[float, "> 0"] = 0.5  # m, from the reference
-    early_termination: bool = True
+    early_termination: bool = True  # a body beyond termination_distance ends the episode (false: plays on)
     reward: ImitationConfig = field(default_factory=ImitationConfig)  # Eq. 10's exponents
 
     def __post_init__(self):

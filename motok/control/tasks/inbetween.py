@@ -73,7 +73,7 @@ class InbetweenTaskConfig:
     time_encoding_dim: In[int, ">= 1"] = 16  # only with "concat"
     termination: str = "any"  # "any" body (the maximum distance, B.1 and C.1) or the "mean" over bodies (the fork's)
     termination_distance: In[float, "> 0"] = 0.5  # m, from the reference
-    early_termination: bool = True
+    early_termination: bool = True  # off track ends the episode (false: info["off_track"] only)
     reward: InbetweenRewardConfig = field(default_factory=InbetweenRewardConfig)  # Eq. 14's weights and exponents
 
     # What a config saved before a key existed did (motok.config.from_dict): uniform keyframes.

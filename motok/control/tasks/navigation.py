@@ -55,10 +55,10 @@ class NavigationTaskConfig:
     # term is 1 there and the position term decays on (the fork's code)
     full_reward_on_arrival: bool = True
     k_pos: In[float, ">= 0"] = 0.5  # exp(-k_pos d^2)
-    w_pos: In[float, ">= 0"] = 0.7
+    w_pos: In[float, ">= 0"] = 0.7  # weight of the position term (Eq. 16)
     w_vel: In[float, ">= 0"] = 0.3  # weight of the velocity term
     fall_height: In[float, "> 0"] = 0.5  # m, head height
-    early_termination: bool = True
+    early_termination: bool = True  # a fall ends the episode
     head_body: str | None = None  # the body tested for falls; None: the skeleton's head joint
 
     # What a config saved before a key existed did (motok.config.from_dict): the velocity term alone was

@@ -49,7 +49,7 @@ MOVING = 0.2  # m/s: slower than this, the direction of travel is noise (the dir
 class SteeringTaskConfig:
     episode_seconds: In[float, "> 0"] = 10.0  # an episode's length (several commands)
     min_command_seconds: In[float, "> 0"] = 2.0  # a command lasts between these (uniform) before the next
-    max_command_seconds: In[float, "> 0"] = 5.0
+    max_command_seconds: In[float, "> 0"] = 5.0  # the longest a command lasts (>= min_command_seconds)
     min_speed: In[float, ">= 0"] = 0.5  # m/s, the commanded speed is uniform between these
     max_speed: In[float, ">= 0"] = 1.5  # the data's walks: about 1.1 m/s
     k_vel: In[float, ">= 0"] = 0.25  # exp(-k_vel |v* - v|^2), (s/m)^2 (ASE's heading task: 0.25)

@@ -50,23 +50,3 @@ def test_base_is_not_mutated_and_exponents_parse():
     cfg = load_config(Cfg, None, ["optim.lr=1e-3"], base=base)
     assert cfg.optim.lr == 1e-3 and base["optim"]["lr"] == 0.1
 
-
-def test_every_control_config_field_says_what_it_is():
-    """Each field of the control stage's config dataclasses carries a comment where it is declared
-    (on its line or the line above), so help texts and recipe comments can come from one place."""
-    import ast
-    import io
-    import tokenize
-    from pathlib import Path
-
-    missing = []
-    for path in sorted((Path(__file__).resolve().parent.parent / "motok" / "control").rglob("*.py")):
-        src = path.read_text()
-        comments = {t.start[0] for t in tokenize.generate_tokens(io.StringIO(src).readline) if t.type == tokenize.COMMENT}
-        for node in ast.walk(ast.parse(src)):
-            if isinstance(node, ast.ClassDef) and node.name.endswith(("Config", "Schedule")):
-                for st in node.body:
-                    if isinstance(st, ast.AnnAssign) and not ({st.lineno - 1, *range(st.lineno, st.end_lineno + 1)}
-                                                               & comments):
-                        missing.append(f"{path.name}: {node.name}.{st.target.id}")
-    assert not missing, missing

@@ -8,7 +8,7 @@ and their ratio.
    re-plan every ``--replan-every`` seconds from the simulated character.
 
 Both calls are timed whole (loading the runs, generating, simulating, writing), best of
-``--repeats``; the closed loop's generation and simulation alone (``time_run_s``, the issue's
+``--repeats``; the closed loop's generation and simulation alone (``time_run_s``, the target
 cost: a 10-s sample in under 10 s on 2 cores, a realtime factor of at least 1) and the part of it
 spent planning (encoding windows, the GPT, decoding) are printed beside. Realtime factor: the
 seconds of motion simulated (to the end or to a failure) per wall second.

@@ -133,10 +133,10 @@ def generate(gpt: "Sampler", texts: str | Iterable[str], *, num_samples: int = 1
 def encode(tokenizer: "Tokenizer", motion: Motion, *, codebooks: int | None = None) -> np.ndarray:
     """The motion's codes ``(L, M)`` (``M`` codebooks, all by default), one per ``rate`` frames;
     the trailing frames that fill no code are dropped, as ``motok tokenize encode`` does."""
-    from motok.tokenizer.tokens import check_codebooks, check_feature_dim
+    from motok.tokenizer.tokens import check_codebooks, check_motion
 
     m = motions(motion)[0]
-    check_feature_dim(m.features.shape[1], tokenizer.meta, f"motion {m.name!r}")
+    check_motion(tokenizer.meta, f"motion {m.name!r}", m.features.shape[1], m.fps, m.skeleton.joints, m.legacy)
     if m.num_frames < tokenizer.rate:
         raise UserError(f"motion {m.name!r}: {m.num_frames} frames, fewer than one code ({tokenizer.rate})")
     return tokenizer.encode(m.features, check_codebooks(tokenizer.model, codebooks))

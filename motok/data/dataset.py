@@ -287,7 +287,7 @@ def select_clips(data, pattern: str | None, split: str | None = None) -> list[st
     names = list(data.names)
     if split is not None:
         if split not in data.splits:
-            raise UserError(f"{data.path} has no split {split!r} (it has {sorted(data.splits)})")
+            raise UserError(f"{data.path} has no split {split!r} (it has {sorted(set(data.splits))})")
         names = [names[i] for i in data.split_indices(split)]
     if not pattern:
         return names

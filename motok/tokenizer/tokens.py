@@ -100,14 +100,29 @@ def check_codebooks(model, num_codebooks: int | None) -> int:
 
 
 def _check_data(mf: MotionFile, meta: dict) -> None:
-    check_feature_dim(int(mf.h5["frames/features"].shape[1]), meta, mf.path)
+    check_motion(meta, mf.path, int(mf.h5["frames/features"].shape[1]), mf.fps, mf.skeleton.joints, mf.legacy)
 
 
-def check_feature_dim(fd: int, meta: dict, where) -> None:
-    """Refuse features of another width than the tokenizer's (another skeleton's)."""
-    if fd != int(meta["extra"]["feature_dim"]):
-        raise ArtifactError(f"{where}: features have {fd} dims, the tokenizer expects {meta['extra']['feature_dim']} "
-                            f"(trained on a {meta['extra']['num_joints']}-joint skeleton)")
+def check_motion(meta: dict, where, feature_dim: int, fps: float | None = None, joints=None,
+                 legacy: bool | None = None) -> None:
+    """Refuse motion unlike the tokenizer's training data: features of another width (another
+    skeleton), another frame rate (the features hold per-frame velocities, and a code covers a
+    fixed number of frames), other joints, or the other feature convention (``--legacy``)."""
+    ex = meta["extra"]
+    if feature_dim != int(ex["feature_dim"]):
+        raise ArtifactError(f"{where}: features have {feature_dim} dims, the tokenizer expects {ex['feature_dim']} "
+                            f"(trained on a {ex['num_joints']}-joint skeleton)")
+    if fps is not None and abs(float(fps) - float(ex["fps"])) > 1e-6:
+        raise ArtifactError(f"{where}: motion at {float(fps):g} fps, the tokenizer was trained at {float(ex['fps']):g} "
+                            f"fps; preprocess it with --fps {float(ex['fps']):g}")
+    theirs = [row[0] for row in ex["skeleton"]["joints"]]
+    if joints is not None and list(joints) != theirs:
+        raise ArtifactError(f"{where}: its joints are not those of the tokenizer's skeleton "
+                            f"{ex['skeleton']['name']!r} ({', '.join(theirs[:3])}, ...)")
+    if legacy is not None and bool(legacy) != bool(ex["legacy"]):
+        made = "with" if ex["legacy"] else "without"
+        raise ArtifactError(f"{where}: features made {'with' if legacy else 'without'} --legacy, the tokenizer's "
+                            f"{made} it; preprocess it {made} --legacy")
 
 
 # --------------------------------------------------------------------------- encode
@@ -124,6 +139,8 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
     with MotionFile(data) as mf:
         _check_data(mf, meta)
         which = mf.split_indices(split) if split else range(len(mf))
+        if not which:
+            raise TokenizerError(f"{data}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
         total = sum(int(mf.frame_offsets[i + 1] - mf.frame_offsets[i]) for i in which)
         with _progress.make_progress("frames") as bar:
             task = bar.add_task("encode", total=total)

@@ -1,0 +1,144 @@
+"""Inputs that do not belong together: motion at another frame rate or feature convention than
+the model that reads it (a tokenizer, the text-motion evaluator, the label classifier), and a
+split the file does not have. Each is one `error:` line naming the file and both sides, before
+any work, with nothing written, never a plausible number."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from motok.cli.main import app
+
+from tiny_runs import tree  # noqa: F401  (a fixture)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+runner = CliRunner()
+
+
+def _one_line_error(r, *says):
+    assert r.exit_code == 2, r.output
+    lines = [ln for ln in r.output.strip().splitlines() if not ln.startswith("note:")]
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.output
+    for s in says:
+        assert s in lines[0], (s, lines[0])
+
+
+@pytest.fixture(scope="module")
+def other(tmp_path_factory, bandai_slice, bandai_dir):
+    """The walk slice the tiny runs were trained on (20 fps), preprocessed again at 30 fps, and
+    at 20 fps with the official HumanML3D quirks (``--legacy``): same joints, same feature width."""
+    from motok.data.preprocess import PreprocessConfig, preprocess
+
+    root = tmp_path_factory.mktemp("other-rates")
+    out = {}
+    for name, kw in (("fps30", {"fps": 30.0}), ("legacy", {"legacy": True})):
+        out[name] = root / f"{name}.h5"
+        cfg = PreprocessConfig(data=[str(bandai_slice)], annotations=str(bandai_dir / "annotations"),
+                               clips="dataset-2_walk_normal_*", skeleton="bandai21", **kw)
+        preprocess(cfg, out[name], command="pytest other")
+    return out
+
+
+@pytest.fixture(scope="module")
+def evaluator(small_dataset, tmp_path_factory):
+    """A 10-iteration evaluator on the 20 fps walk slice: untrained, but a real run."""
+    from motok.eval.evaluator import resolve_config, train_evaluator
+
+    run = tmp_path_factory.mktemp("mismatch-eval") / "ev"
+    cfg = resolve_config(None, ["text_encoder=bow", "width=32", "embed_dim=32", "layers=1", "heads=2",
+                                "batch_size=8", "iterations=10", "log_every=5", "max_frames=64", "threads=1"])
+    train_evaluator(cfg, small_dataset, run, command="pytest")
+    return run
+
+
+@pytest.mark.parametrize("which,says", [("fps30", ["at 30 fps", "trained at 20 fps", "--fps 20"]),
+                                        ("legacy", ["with --legacy", "without it"])])
+def test_a_tokenizer_refuses_motion_at_another_rate_or_convention(tree, other, tmp_path, which, says):
+    """Before: `tokenize encode`, `tokenize eval` and `eval recon` read 30 fps motion with a 20 fps
+    tokenizer (the features' velocities per frame are 1.5 times smaller, a code spans 2/3 of the
+    time) and wrote tokens or printed errors in millimetres, exit 0."""
+    import motok
+    from motok.errors import MotokError
+
+    data, out = other[which], tmp_path / "tokens.h5"
+    for args in (["tokenize", "encode", "-d", str(data), "-t", str(tree / "tok"), "-o", str(out)],
+                 ["tokenize", "eval", "-d", str(data), "-t", str(tree / "tok"), "--split", "train"],
+                 ["eval", "recon", "-d", str(data), "-t", str(tree / "tok"), "--split", "train"]):
+        _one_line_error(runner.invoke(app, args), str(data), *says)
+    assert not out.exists()
+    # The same check from Python.
+    tok = motok.load(tree / "tok")
+    walk = motok.load_motions(data)[0]
+    with pytest.raises(MotokError, match=says[0]):
+        motok.encode(tok, walk)
+
+
+def test_the_same_data_still_encodes(tree, small_dataset, tmp_path):
+    """The check compares like with like: the data the tokenizer was trained on passes."""
+    r = runner.invoke(app, ["tokenize", "encode", "-d", str(small_dataset), "-t", str(tree / "tok"),
+                            "-o", str(tmp_path / "t.h5")])
+    assert r.exit_code == 0, r.output
+
+
+def test_t2m_refuses_rows_at_another_rate_than_its_evaluator(tree, other, evaluator, small_dataset, tmp_path,
+                                                            monkeypatch):
+    """Before: `eval t2m` embedded 30 fps motion with a 20 fps evaluator and printed R-precision and
+    FID (and the physical columns of a `--motions` row at the data's rate), exit 0; and `eval recon
+    --motions` compared frames of 30 fps clips one to one with 20 fps ones."""
+    def boom(*a, **k):
+        raise AssertionError("generated before the --motions rows were checked")
+    monkeypatch.setattr("motok.gpt.sample.generate", boom)
+    fast, out = str(other["fps30"]), tmp_path / "t2m.json"
+    base = ["eval", "t2m", "-e", str(evaluator), "--split", "train", "--set", "repeats=1", "--set", "batch=4",
+            "-o", str(out)]
+    _one_line_error(runner.invoke(app, base + ["-d", fast]), fast, "30 fps", "trained at 20 fps")
+    _one_line_error(runner.invoke(app, base + ["-d", str(small_dataset), "-g", str(tree / "gpt"), "--motions", fast]),
+                    fast, "30 fps", "trained at 20 fps")
+    assert not out.exists()
+    _one_line_error(runner.invoke(app, ["eval", "recon", "-d", str(small_dataset), "--motions", fast,
+                                        "--split", "train"]), fast, "at 30 fps", "at 20")
+
+
+def test_t2m_refuses_a_gpt_whose_motion_is_at_another_rate(tree, other, tmp_path):
+    """The generation row: a GPT (through its tokenizer) makes 20 fps motion; data and evaluator at
+    30 fps are refused before anything is generated."""
+    from motok.eval.evaluator import EvaluatorError
+    from motok.eval.generate import generated_set
+    from motok.eval.protocol import T2MConfig
+    from motok.eval.sets import real_set
+
+    ref, info = real_set(other["fps30"], "train")
+    with pytest.raises(EvaluatorError, match="generates motion at 20 fps.*at 30 fps"):
+        generated_set(tree / "gpt", None, ref, T2MConfig(), tmp_path / "g.h5", fps=info["fps"])
+    assert not (tmp_path / "g.h5").exists()
+
+
+def test_labels_refuses_motion_the_classifier_cannot_read(tree, other, small_dataset, monkeypatch):
+    """Before: `eval labels --motions` scored 30 fps motion with a classifier fitted on 20 fps
+    features, exit 0; a GPT of 20 fps motion was scored against 30 fps data the same way."""
+    fast = str(other["fps30"])
+    _one_line_error(runner.invoke(app, ["eval", "labels", "-d", str(small_dataset), "--motions", fast]),
+                    fast, "at 30 fps", "at 20 fps")
+
+    def boom(*a, **k):
+        raise AssertionError("generated before the rates were compared")
+    monkeypatch.setattr("motok.gpt.sample.generate", boom)
+    _one_line_error(runner.invoke(app, ["eval", "labels", "-d", fast, "--gpt", str(tree / "gpt")]),
+                    str(tree / "gpt"), "at 20 fps", f"{fast}: 251-d at 30 fps")
+
+
+def test_a_split_the_file_does_not_have_is_named_as_such(tree, small_dataset, tmp_path):
+    """Before: `tokenize encode --split tset` said 'no clip has at least 4 frames to encode', and a
+    control command's unknown split listed the split of every clip (thousands of words)."""
+    from motok.data.dataset import select_clips
+    from motok.errors import UserError
+
+    out = tmp_path / "t.h5"
+    r = runner.invoke(app, ["tokenize", "encode", "-d", str(small_dataset), "-t", str(tree / "tok"),
+                            "--split", "tset", "-o", str(out)])
+    _one_line_error(r, str(small_dataset), "no clip in split 'tset'", "['test', 'train', 'val']")
+    assert not out.exists()
+    with pytest.raises(UserError) as e:
+        select_clips(small_dataset, None, "tset")
+    assert str(e.value).endswith("has no split 'tset' (it has ['test', 'train', 'val'])"), str(e.value)

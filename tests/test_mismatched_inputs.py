@@ -142,3 +142,24 @@ def test_a_split_the_file_does_not_have_is_named_as_such(tree, small_dataset, tm
     with pytest.raises(UserError) as e:
         select_clips(small_dataset, None, "tset")
     assert str(e.value).endswith("has no split 'tset' (it has ['test', 'train', 'val'])"), str(e.value)
+
+
+def test_allow_mismatch_still_needs_a_tokenizer_that_can_decode_the_codes(tree, small_dataset, tmp_path):
+    """`--allow-mismatch` lets another tokenizer decode, one of the same shape. Before: one with a
+    smaller codebook ended `gpt sample` (after sampling) and `tokenize decode` in an IndexError
+    traceback."""
+    from motok.quantize.base import QuantizerConfig
+    from motok.tokenizer.model import ModelConfig
+    from motok.tokenizer.train import TrainConfig, train
+
+    small = tmp_path / "tok16"
+    train(TrainConfig(model=ModelConfig(width=32, depth=1), quantizer=QuantizerConfig(codebook_size=16, dim=16),
+                      iterations=2, batch_size=4, window=32, log_every=1, save_every=2, threads=1),
+          small_dataset, small, command="pytest")
+    out = tmp_path / "out.h5"
+    for args, whose in ((["gpt", "sample", "-g", str(tree / "gpt"), "--text", "a person walks", "-o", str(out)],
+                         tree / "gpt"),
+                        (["tokenize", "decode", "-d", str(tree / "tokens.h5"), "-o", str(out)], tree / "tokens.h5")):
+        r = runner.invoke(app, args + ["-t", str(small), "--allow-mismatch"])
+        _one_line_error(r, str(small), "1 codebook(s) of 16 codes", f"the codes of {whose} need", "of 32 codes")
+        assert not out.exists()

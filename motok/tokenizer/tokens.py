@@ -99,6 +99,17 @@ def check_codebooks(model, num_codebooks: int | None) -> int:
     return num_codebooks or n
 
 
+def check_codes_fit(model, run, codes_from, codebook_size: int, rate: int, codebooks: int = 1,
+                    error: type[Exception] = ArtifactError) -> None:
+    """Refuse a tokenizer (``run``, even one allowed to differ) that cannot decode the codes of
+    ``codes_from``: codes of another codebook size (some past its codebook), another rate (a code
+    would span another number of frames), or more codebooks than it has."""
+    have = (int(model.quantizer.codebook_size), int(model.rate), int(model.num_codebooks))
+    if have[0] != codebook_size or have[1] != rate or have[2] < codebooks:
+        raise error(f"{run} decodes {have[2]} codebook(s) of {have[0]} codes, {have[1]} frames per code; the codes of "
+                    f"{codes_from} need {codebooks}+ codebook(s) of {codebook_size} codes, {rate} frames per code")
+
+
 def _check_data(mf: MotionFile, meta: dict) -> None:
     check_motion(meta, mf.path, int(mf.h5["frames/features"].shape[1]), mf.fps, mf.skeleton.joints, mf.legacy)
 
@@ -233,6 +244,7 @@ def decode(run: str | Path, tokens: str | Path, out: str | Path, num_codebooks: 
         if tf.tokenizer_sha256 != meta["model_sha256"] and not allow_mismatch:
             raise ArtifactError(f"{tokens} was encoded by another tokenizer ({tf.provenance.config.get('tokenizer')}, "
                                 f"sha256 {tf.tokenizer_sha256[:12]}) than {run} ({meta['model_sha256'][:12]})")
+        check_codes_fit(model, run, tokens, tf.codebook_size, tf.rate)
         m = check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks))
         skeleton = tok.skeleton
         clips = []

@@ -163,3 +163,33 @@ def test_allow_mismatch_still_needs_a_tokenizer_that_can_decode_the_codes(tree, 
         r = runner.invoke(app, args + ["-t", str(small), "--allow-mismatch"])
         _one_line_error(r, str(small), "1 codebook(s) of 16 codes", f"the codes of {whose} need", "of 32 codes")
         assert not out.exists()
+
+
+@pytest.mark.parametrize("task,sets,refused", [
+    ("steering", ["tasks.navigation.min_distance=1"], "tasks.navigation.min_distance=1"),
+    ("steering", ["tasks.steering.max_speed=1.2", "tasks.hmd.episode_seconds=2"], "tasks.hmd.episode_seconds=2"),
+    ("multitask", ["tasks.compose.target_seconds=1"], "tasks.compose.target_seconds=1"),
+    ("multitask", ['tasks.multitask.tasks=["navigation","hmd"]', "tasks.multitask.switch=[]",
+                   "tasks.steering.max_speed=1"], "tasks.steering.max_speed=1"),
+    ("steering", ["tasks.steering.max_speed=1.2"], None),
+    ("multitask", ["tasks.navigation.min_distance=1", "tasks.steering.max_speed=1"], None),
+    ("compose", ["tasks.navigation.min_distance=1", "tasks.compose.target_seconds=1"], None),
+])
+def test_an_evaluation_refuses_settings_of_a_task_the_policy_does_not_play(task, sets, refused):
+    """Before: `control eval --task steering --policy RUN --set tasks.navigation.min_distance=1`
+    evaluated the steering policy as without it and recorded the setting in the report, exit 0."""
+    from motok.control.highlevel.evaluate import with_task_settings
+    from motok.control.highlevel.policy import TaskTrainConfig
+    from motok.errors import UserError
+
+    cfg = TaskTrainConfig(task=task)
+    if refused is not None:
+        with pytest.raises(UserError, match=f"^--set {refused.replace('[', '.').replace(']', '.')}: a '{task}' "
+                                            f"policy reads only tasks.{task}"):
+            with_task_settings(cfg, sets)
+        return
+    new = with_task_settings(cfg, sets)
+    for s in sets:
+        key, value = s.split("=")
+        _, name, field = key.split(".")
+        assert getattr(getattr(new.tasks, name), field) == float(value), s

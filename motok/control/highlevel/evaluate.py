@@ -91,7 +91,13 @@ def with_task_settings(cfg: TaskTrainConfig, sets: list[str]) -> TaskTrainConfig
         raise UserError(f"--set on an evaluation changes task settings only (tasks.NAME.KEY=VALUE), not {bad}")
     if not sets:
         return cfg
-    return load_config(TaskTrainConfig, overrides=sets, base=to_dict(cfg))
+    new = load_config(TaskTrainConfig, overrides=sets, base=to_dict(cfg))
+    read = registry.settings_read(new.task, new.tasks)
+    unread = [s for s in sets if s.strip().split("=", 1)[0].split(".")[1] not in read]
+    if unread:
+        raise UserError(f"--set {unread[0]}: a {new.task!r} policy reads only "
+                        f"{', '.join(f'tasks.{n}' for n in read)}; that setting would change nothing")
+    return new
 
 
 @checked(episodes=">= 1", seed=">= 0")

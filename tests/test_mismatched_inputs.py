@@ -193,3 +193,35 @@ def test_an_evaluation_refuses_settings_of_a_task_the_policy_does_not_play(task,
         key, value = s.split("=")
         _, name, field = key.split(".")
         assert getattr(getattr(new.tasks, name), field) == float(value), s
+
+
+def test_decoding_with_more_codebooks_than_the_codes_hold_is_refused(small_dataset, tmp_path):
+    """Before: `tokenize decode --codebooks 3` of codes encoded with `--codebooks 1` (and
+    `motok.decode` of one column with codebooks=3) ended in a ValueError traceback."""
+    import numpy as np
+
+    import motok
+    from motok.errors import MotokError
+    from motok.quantize.base import QuantizerConfig
+    from motok.tokenizer.model import ModelConfig
+    from motok.tokenizer.train import TrainConfig, train
+
+    rvq = tmp_path / "rvq"
+    train(TrainConfig(model=ModelConfig(width=32, depth=1),
+                      quantizer=QuantizerConfig(kind="rvq", num_codebooks=3, codebook_size=16, dim=16),
+                      iterations=2, batch_size=4, window=32, log_every=1, save_every=2, threads=1),
+          small_dataset, rvq, command="pytest")
+    one = tmp_path / "one.h5"
+    r = runner.invoke(app, ["tokenize", "encode", "-d", str(small_dataset), "-t", str(rvq), "-m", "1", "-o", str(one)])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "out.h5"
+    _one_line_error(runner.invoke(app, ["tokenize", "decode", "-d", str(one), "-t", str(rvq), "-m", "3",
+                                        "-o", str(out)]), "--codebooks 3", str(one), "1 codebook(s)")
+    assert not out.exists()
+    tok = motok.load(rvq)
+    with pytest.raises(MotokError, match=r"--codebooks 3: the array has codes of 1 codebook\(s\) only"):
+        motok.decode(tok, np.zeros((5, 1), dtype=np.int64), codebooks=3)
+    # as many as both have, by default, and fewer on request
+    assert motok.decode(tok, np.zeros((5, 1), dtype=np.int64)).num_frames == 5 * tok.rate
+    r = runner.invoke(app, ["tokenize", "decode", "-d", str(one), "-t", str(rvq), "-m", "1", "-o", str(out)])
+    assert r.exit_code == 0 and out.exists(), r.output

@@ -158,7 +158,8 @@ def decode(tokenizer: "Tokenizer", codes, *, codebooks: int | None = None, name:
             or arr.max() >= size:
         raise UserError(f"codes must be integers in 0..{size - 1}, shaped (L,) or (L, N) with L >= 1; "
                         f"got {arr.dtype} {arr.shape}")
-    m = check_codebooks(tokenizer.model, codebooks or min(arr.shape[1], tokenizer.model.num_codebooks))
+    m = check_codebooks(tokenizer.model, codebooks or min(arr.shape[1], tokenizer.model.num_codebooks),
+                        ("the array", arr.shape[1]))
     caps = [(caption, "", 0.0, 0.0)] if caption else []
     clip = tokenizer.decode(name, arr, m, split="none", captions=caps)
     return Motion(clip, tokenizer.skeleton, tokenizer.fps, tokenizer.offsets, tokenizer.legacy)

@@ -60,8 +60,8 @@ def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
         joints = [mf.frames("joints", i) for i in idx]
         sk = mf.skeleton
         info = {"fps": mf.fps, "feet": (tuple(sk.feet_left), tuple(sk.feet_right)), "num_joints": sk.num_joints,
-                "names": sd.names, "labels": sd.labels, "path": str(data), "joints": list(sk.joints), "legacy": mf.legacy,
-                "feature_dim": int(mf.h5["frames/features"].shape[1])}
+                "names": sd.names, "labels": sd.labels, "path": str(data), "joints": list(sk.joints),
+                "legacy": mf.legacy, "feature_dim": int(mf.h5["frames/features"].shape[1])}
     return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints},
                      labels=sd.labels, names=list(sd.names)), info
 

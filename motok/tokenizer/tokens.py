@@ -91,11 +91,14 @@ def _tokenizer_id(run: Path, meta: dict, out: Path) -> dict:
             "tokenizer_config": json.dumps(meta["config"], sort_keys=True)}
 
 
-def check_codebooks(model, num_codebooks: int | None) -> int:
-    """The number of codebooks to use: ``num_codebooks`` (1 to the tokenizer's), else all of them."""
+def check_codebooks(model, num_codebooks: int | None, codes: tuple | None = None) -> int:
+    """The number of codebooks to use: ``num_codebooks`` (1 to the tokenizer's), else all of them;
+    ``codes``: ``(where, columns)`` of codes to decode, which must hold that many codebooks too."""
     n = model.num_codebooks
     if num_codebooks is not None and not 1 <= num_codebooks <= n:
         raise TokenizerError(f"--codebooks {num_codebooks}: the tokenizer has {n} codebook(s)")
+    if codes is not None and (num_codebooks or n) > codes[1]:
+        raise TokenizerError(f"--codebooks {num_codebooks or n}: {codes[0]} has codes of {codes[1]} codebook(s) only")
     return num_codebooks or n
 
 
@@ -245,7 +248,8 @@ def decode(run: str | Path, tokens: str | Path, out: str | Path, num_codebooks: 
             raise ArtifactError(f"{tokens} was encoded by another tokenizer ({tf.provenance.config.get('tokenizer')}, "
                                 f"sha256 {tf.tokenizer_sha256[:12]}) than {run} ({meta['model_sha256'][:12]})")
         check_codes_fit(model, run, tokens, tf.codebook_size, tf.rate)
-        m = check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks))
+        m = check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks),
+                            (tokens, tf.num_codebooks))
         skeleton = tok.skeleton
         clips = []
         with _progress.make_progress("clips") as bar:

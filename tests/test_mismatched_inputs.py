@@ -225,3 +225,29 @@ def test_decoding_with_more_codebooks_than_the_codes_hold_is_refused(small_datas
     assert motok.decode(tok, np.zeros((5, 1), dtype=np.int64)).num_frames == 5 * tok.rate
     r = runner.invoke(app, ["tokenize", "decode", "-d", str(one), "-t", str(rvq), "-m", "1", "-o", str(out)])
     assert r.exit_code == 0 and out.exists(), r.output
+
+
+def test_an_output_never_takes_the_place_of_a_runs_own_file(tree, evaluator, small_dataset, tmp_path):
+    """Before: `eval t2m -o RUN/bundle.json` replaced a tokenizer run's bundle.json with the report
+    (a JSON with a `kind`, so it passed for motok's own file) and the run no longer loaded; `sim
+    build-humanoid -o RUN/humanoid.xml` replaced a control run's humanoid the same way."""
+    import shutil
+
+    import motok
+    from motok.sim.mjcf import build_humanoid
+
+    run = tmp_path / "tok"
+    shutil.copytree(tree / "tok", run)
+    build_humanoid(small_dataset, run / "humanoid.xml")  # as a control run holds one
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    t2m = ["eval", "t2m", "-d", str(small_dataset), "-e", str(evaluator), "--split", "train", "--set", "repeats=1",
+           "--set", "batch=4"]
+    for args, target in ((t2m + ["-o", str(run / "bundle.json")], run / "bundle.json"),
+                         (["sim", "build-humanoid", "-d", str(small_dataset), "--total-mass", "50",
+                           "-o", str(run / "humanoid.xml")], run / "humanoid.xml")):
+        _one_line_error(runner.invoke(app, args), str(target), f"is a file of the run {run}")
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    motok.load(run)  # still a run
+    # a new report beside the run's files is fine
+    r = runner.invoke(app, t2m + ["-o", str(run / "t2m.json")])
+    assert r.exit_code == 0 and (run / "t2m.json").exists(), r.output

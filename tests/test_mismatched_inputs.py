@@ -251,3 +251,43 @@ def test_an_output_never_takes_the_place_of_a_runs_own_file(tree, evaluator, sma
     # a new report beside the run's files is fine
     r = runner.invoke(app, t2m + ["-o", str(run / "t2m.json")])
     assert r.exit_code == 0 and (run / "t2m.json").exists(), r.output
+
+
+@pytest.mark.parametrize("damage,says", [
+    ("drop frames/features", "a motion-dataset artifact without frames/features"),
+    ("cut frames/joints", "frames/joints has 100 rows, its clips end at row"),
+    ("drop captions/text", "a motion-dataset artifact without captions/text"),
+    ("cut clips/offset", "clips/offset does not index its 24 clips"),
+])
+def test_an_artifact_cut_short_or_missing_a_part_is_one_line(tree, small_dataset, tmp_path, damage, says):
+    """A motion-dataset another tool wrote, or one cut short: before, a KeyError traceback from deep in
+    a reader, or (rows cut) a clip silently read short."""
+    import shutil
+
+    import h5py
+
+    bad = tmp_path / "bad.h5"
+    shutil.copy(small_dataset, bad)
+    how, member = damage.split()
+    with h5py.File(bad, "a") as f:
+        rows = f[member][()]
+        del f[member]
+        if how == "cut":
+            f[member] = rows[:100] if member.startswith("frames") else rows[:-1]
+    for args in (["tokenize", "encode", "-d", str(bad), "-t", str(tree / "tok"), "-o", str(tmp_path / "t.h5")],
+                 ["render", "-d", str(bad), "--clip", "5", "--max-frames", "3", "-o", str(tmp_path / "r.gif")]):
+        _one_line_error(runner.invoke(app, args), str(bad), says, "damaged, or not written by motok")
+    assert not (tmp_path / "t.h5").exists() and not (tmp_path / "r.gif").exists()
+
+
+def test_a_tokens_artifact_without_its_tokens_is_one_line(tree, tmp_path):
+    import shutil
+
+    import h5py
+
+    bad = tmp_path / "tokens.h5"
+    shutil.copy(tree / "tokens.h5", bad)
+    with h5py.File(bad, "a") as f:
+        del f["tokens"]
+    r = runner.invoke(app, ["tokenize", "decode", "-d", str(bad), "-t", str(tree / "tok"), "-o", str(tmp_path / "m.h5")])
+    _one_line_error(r, str(bad), "a tokens artifact without tokens")

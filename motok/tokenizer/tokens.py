@@ -210,6 +210,9 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
 class TokenFile(ClipFile):
     """Read access to a ``tokens`` artifact: per-clip indices ``(L, N)`` and captions."""
 
+    REQUIRED = (*ClipFile.REQUIRED, "clips/frames", "clips/source_frames")
+    ROWS = ("tokens",)
+
     def __init__(self, path: str | Path):
         super().__init__(path, KIND)
         a = self.h5.attrs

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from motok.cli.main import app
 
-from tiny_runs import tree  # noqa: F401  (a fixture)
+from tiny_runs import cache, controllers, tree  # noqa: F401  (fixtures)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 runner = CliRunner()
@@ -291,3 +291,24 @@ def test_a_tokens_artifact_without_its_tokens_is_one_line(tree, tmp_path):
         del f["tokens"]
     r = runner.invoke(app, ["tokenize", "decode", "-d", str(bad), "-t", str(tree / "tok"), "-o", str(tmp_path / "m.h5")])
     _one_line_error(r, str(bad), "a tokens artifact without tokens")
+
+
+def test_a_runs_evaluation_is_not_replaced_by_one_of_other_clips(controllers, small_dataset):
+    """Before: `control eval --task imitation --prior RUN --clips ONE` (and `control expert eval`,
+    `control eval --policy`) wrote RUN/eval.json over the run's evaluation of all its clips, without
+    a word. Now the other evaluation is moved aside; the same evaluation again replaces it."""
+    import json
+
+    from motok.control.expert.evaluate import evaluate_run
+    from motok.control.priors.evaluate import evaluate_prior
+
+    prior, expert = controllers
+    for run, evaluate in ((prior, evaluate_prior), (expert, evaluate_run)):
+        evaluate(run, data=small_dataset, clips="dataset-2_walk_normal_00[12]")
+        first = json.loads((run / "eval.json").read_text())
+        evaluate(run, data=small_dataset, clips="dataset-2_walk_normal_00[12]")  # the same: replaced
+        assert sorted(p.name for p in run.glob("eval*.json")) == ["eval.json"]
+        evaluate(run, data=small_dataset, clips="dataset-2_walk_normal_003")  # other clips: the first kept
+        kept = [p for p in run.glob("eval.replaced-*.json")]
+        assert len(kept) == 1 and json.loads(kept[0].read_text())["clips"] == first["clips"]
+        assert list(json.loads((run / "eval.json").read_text())["clips"]) == ["dataset-2_walk_normal_003"]

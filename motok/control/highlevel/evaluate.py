@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import write_json
 from motok.config import load_config, to_dict
 from motok.control import runs
 from motok.control.highlevel.policy import TaskTrainConfig, load_task_run, task_mdp
@@ -119,7 +118,7 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
                       inputs=hash_inputs([src]))
     res["provenance"] = json.loads(prov.to_json())
     path = run / (f"eval_{res['task']}" + (f"_{split}" if split else "") + ".json")
-    write_json(path, res)
+    runs.write_evaluation(path, res)
     res["written"] = str(path)
     return res
 

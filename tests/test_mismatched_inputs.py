@@ -1,27 +1,20 @@
-"""Inputs that do not belong together: motion at another frame rate or feature convention than
-the model that reads it (a tokenizer, the text-motion evaluator, the label classifier), and a
-split the file does not have. Each is one `error:` line naming the file and both sides, before
-any work, with nothing written, never a plausible number."""
+"""Inputs that do not belong together, and files that must not be lost: motion at another frame
+rate or feature convention than the model that reads it (a tokenizer, the text-motion evaluator,
+the label classifier), codes another tokenizer cannot decode, task settings a policy does not read,
+a split the file lacks, a damaged artifact, an output over a run's own file, an evaluation over the
+run's. Each is one `error:` line naming the file and both sides, before any work, with nothing
+written, never a plausible number; or, for an evaluation, the old one kept."""
 
 from __future__ import annotations
 
 import pytest
-from typer.testing import CliRunner
 
 from motok.cli.main import app
 
+from test_bad_inputs import _one_line_error, runner
 from tiny_runs import cache, controllers, tree  # noqa: F401  (fixtures)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-runner = CliRunner()
-
-
-def _one_line_error(r, *says):
-    assert r.exit_code == 2, r.output
-    lines = [ln for ln in r.output.strip().splitlines() if not ln.startswith("note:")]
-    assert len(lines) == 1 and lines[0].startswith("error: "), r.output
-    for s in says:
-        assert s in lines[0], (s, lines[0])
 
 
 @pytest.fixture(scope="module")

@@ -305,3 +305,14 @@ def test_a_runs_evaluation_is_not_replaced_by_one_of_other_clips(controllers, sm
         kept = [p for p in run.glob("eval.replaced-*.json")]
         assert len(kept) == 1 and json.loads(kept[0].read_text())["clips"] == first["clips"]
         assert list(json.loads((run / "eval.json").read_text())["clips"]) == ["dataset-2_walk_normal_003"]
+
+
+def test_codebooks_with_an_expert_is_refused(controllers, small_dataset, tmp_path):
+    """Before: `control track --expert RUN --codebooks 2` (and `gpt sample --expert RUN -m 2`) tracked
+    with the expert as without the option, and said nothing."""
+    _, expert = controllers
+    out = tmp_path / "sim.h5"
+    r = runner.invoke(app, ["control", "track", "-d", str(small_dataset), "--clips", "dataset-2_walk_normal_001",
+                            "--expert", str(expert), "-m", "2", "-o", str(out)])
+    _one_line_error(r, "--codebooks 2", f"the expert {expert} has none")
+    assert not out.exists()

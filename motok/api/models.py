@@ -133,10 +133,10 @@ def generate(gpt: "Sampler", texts: str | Iterable[str], *, num_samples: int = 1
 def encode(tokenizer: "Tokenizer", motion: Motion, *, codebooks: int | None = None) -> np.ndarray:
     """The motion's codes ``(L, M)`` (``M`` codebooks, all by default), one per ``rate`` frames;
     the trailing frames that fill no code are dropped, as ``motok tokenize encode`` does."""
-    from motok.tokenizer.tokens import check_codebooks, check_feature_dim
+    from motok.tokenizer.tokens import check_codebooks, check_motion
 
     m = motions(motion)[0]
-    check_feature_dim(m.features.shape[1], tokenizer.meta, f"motion {m.name!r}")
+    check_motion(tokenizer.meta, f"motion {m.name!r}", m.features.shape[1], m.fps, m.skeleton.joints, m.legacy)
     if m.num_frames < tokenizer.rate:
         raise UserError(f"motion {m.name!r}: {m.num_frames} frames, fewer than one code ({tokenizer.rate})")
     return tokenizer.encode(m.features, check_codebooks(tokenizer.model, codebooks))
@@ -158,7 +158,8 @@ def decode(tokenizer: "Tokenizer", codes, *, codebooks: int | None = None, name:
             or arr.max() >= size:
         raise UserError(f"codes must be integers in 0..{size - 1}, shaped (L,) or (L, N) with L >= 1; "
                         f"got {arr.dtype} {arr.shape}")
-    m = check_codebooks(tokenizer.model, codebooks or min(arr.shape[1], tokenizer.model.num_codebooks))
+    m = check_codebooks(tokenizer.model, codebooks or min(arr.shape[1], tokenizer.model.num_codebooks),
+                        ("the array", arr.shape[1]))
     caps = [(caption, "", 0.0, 0.0)] if caption else []
     clip = tokenizer.decode(name, arr, m, split="none", captions=caps)
     return Motion(clip, tokenizer.skeleton, tokenizer.fps, tokenizer.offsets, tokenizer.legacy)

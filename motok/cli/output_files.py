@@ -66,10 +66,21 @@ WHAT = {".h5": "a motok artifact", ".hdf5": "a motok artifact", ".json": "a moto
         ".md": "a motok report", ".xml": "a motok MJCF"}
 
 
+# The files of a run folder that make the run: a report or an MJCF written over one of them (`eval
+# t2m -o RUN/bundle.json`) would pass for motok's own file and leave a run that no longer loads.
+RUN_OWN = ("bundle.json", "metrics.jsonl", "model.safetensors", "train_state.pt", "humanoid.xml")
+
+
 def foreign_file(path: Path) -> str | None:
     """Why the existing file ``path`` must not be replaced, or None: motok replaces only a file
-    it recognises as its own (:data:`OWN`); an output of another suffix is replaced, atomically."""
+    it recognises as its own (:data:`OWN`) and never one of a run's own files (:data:`RUN_OWN`);
+    an output of another suffix is replaced, atomically."""
+    from motok.runfolder import is_motok_run
+
     path = Path(path)
+    if path.name in RUN_OWN and is_motok_run(path.parent):
+        return (f"{path} is a file of the run {path.parent}; an output never takes the place of a run's own "
+                f"files (not even with --force): choose another output")
     suffix = path.suffix.lower()
     if not path.is_file() or (suffix not in OWN and suffix != ".bvh"):
         return None

@@ -113,3 +113,39 @@ def torch_threads(n: int):
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def _what_was_measured(report: dict) -> tuple:
+    """An evaluation's settings and the content of its inputs, whatever the paths they were named by."""
+    prov = report.get("provenance") or {}
+    config = {k: v for k, v in (prov.get("config") or {}).items() if k not in ("run", "prior")}
+    return config, sorted((prov.get("inputs") or {}).values())
+
+
+def write_evaluation(path, report: dict) -> Path:
+    """Write the evaluation ``report`` to ``path`` in its run. An evaluation there of other inputs or
+    settings (other clips, data, episodes, seed, task settings) is moved aside to
+    ``NAME.replaced-TIME.json``, with a note, never lost: the run's evaluation must not be replaced
+    by a quick check on one clip. One of the same inputs and settings is replaced (a later checkpoint)."""
+    import datetime as _dt
+    import json
+    import os
+
+    from motok.atomic import write_json
+    from motok.runfolder import info
+
+    path = Path(path)
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            old = {}
+        if not isinstance(old, dict) or _what_was_measured(old) != _what_was_measured(report):
+            stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+            aside, n = path.with_name(f"{path.stem}.replaced-{stamp}{path.suffix}"), 1
+            while aside.exists():
+                n += 1
+                aside = path.with_name(f"{path.stem}.replaced-{stamp}-{n}{path.suffix}")
+            os.replace(path, aside)
+            info(f"note: {path} held an evaluation of other inputs or settings; it is kept as {aside.name}")
+    return write_json(path, report)

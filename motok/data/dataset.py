@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from motok.artifacts import Provenance, open_artifact, provenance_of, read_strings, write_artifact, write_strings
+from motok.artifacts import (ArtifactError, Provenance, open_artifact, provenance_of, read_strings, write_artifact,
+                             write_strings)
 from motok.errors import UnknownNameError, UserError
 from motok.skeleton import Skeleton
 
@@ -181,14 +182,41 @@ class ClipFile:
     """What the readers of clip-indexed artifacts share (motion, motion-dataset, tokens): the open
     file, its skeleton, the clips' names and splits, their captions; a context manager."""
 
+    # What every such artifact holds (a subclass adds its own): checked when it is opened, so a file
+    # another tool wrote, or one cut short, is one line and not a KeyError deep in a reader.
+    REQUIRED = ("skeleton", "skeleton/offsets", "clips/name", "clips/split", "clips/labels", "clips/offset",
+                "captions/clip", "captions/text", "captions/tokens", "captions/start", "captions/end")
+    ROWS: tuple[str, ...] = ()  # datasets of one row per frame (or token), indexed by clips/offset
+
     def __init__(self, path, kind: str | tuple[str, ...]):
         self.path = Path(path)
         self.h5 = f = open_artifact(path, kind)
+        try:
+            self._check_layout()
+        except ArtifactError:
+            f.close()
+            raise
         self.skeleton = Skeleton.from_dict(json.loads(f["skeleton"].attrs["definition"]), source=f"{path}:/skeleton")
         self.names = read_strings(f["clips/name"])
         self.splits = read_strings(f["clips/split"])
         self._index = {n: i for i, n in enumerate(self.names)}
         self._captions = None
+
+    def _check_layout(self) -> None:
+        f, kind = self.h5, str(self.h5.attrs["kind"])
+        missing = [m for m in (*self.REQUIRED, *self.ROWS) if m not in f]
+        if missing or "definition" not in f["skeleton"].attrs:
+            what = missing[0] if missing else "skeleton.definition"
+            raise ArtifactError(f"{self.path}: a {kind} artifact without {what} (damaged, or not written by motok)")
+        off, n = f["clips/offset"], len(f["clips/name"])
+        ends = off[()] if len(off) == n + 1 else None
+        if ends is None or (np.diff(ends) < 0).any() or ends[0] != 0:
+            raise ArtifactError(f"{self.path}: clips/offset does not index its {n} clips (damaged, or not written "
+                                f"by motok)")
+        for m in self.ROWS:
+            if len(f[m]) != ends[-1]:
+                raise ArtifactError(f"{self.path}: {m} has {len(f[m])} rows, its clips end at row {ends[-1]} "
+                                    f"(damaged, or not written by motok)")
 
     def __enter__(self):
         return self
@@ -224,6 +252,9 @@ class ClipFile:
 
 class MotionFile(ClipFile):
     """Read access to a motion or motion-dataset artifact; clips load lazily by name or index."""
+
+    REQUIRED = (*ClipFile.REQUIRED, "clips/source", "clips/source_fps")
+    ROWS = tuple(f"frames/{k}" for k in FRAME_KEYS)
 
     def __init__(self, path, kind: str | tuple[str, ...] = MOTION_KINDS):
         super().__init__(path, kind)
@@ -287,7 +318,7 @@ def select_clips(data, pattern: str | None, split: str | None = None) -> list[st
     names = list(data.names)
     if split is not None:
         if split not in data.splits:
-            raise UserError(f"{data.path} has no split {split!r} (it has {sorted(data.splits)})")
+            raise UserError(f"{data.path} has no split {split!r} (it has {sorted(set(data.splits))})")
         names = [names[i] for i in data.split_indices(split)]
     if not pattern:
         return names

@@ -20,10 +20,11 @@ from motok.eval.sets import MotionSet, motion_set
 
 
 def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MConfig, out: Path | None,
-                  command: str | None = None) -> MotionSet:
+                  command: str | None = None, fps: float | None = None) -> MotionSet:
     """Sample the GPT for the split's captions (``gen_sets`` sets of one motion per clip, caption drawn
     at random, plus ``mm_samples`` motions for each of ``mm_captions`` captions), write them as a
-    ``motion`` artifact (``out``, kept for rendering and re-evaluation) and read it back as a row."""
+    ``motion`` artifact (``out``, kept for rendering and re-evaluation) and read it back as a row.
+    ``fps``: the rate of the data and evaluator, which the GPT's tokenizer must share (checked first)."""
     import tempfile
 
     import torch
@@ -37,6 +38,12 @@ def generated_set(gpt: Path, tokenizer: Path | None, ref: MotionSet, cfg: T2MCon
     model, meta, tok, tok_meta, tok_run, cache = load_for_sampling(gpt, tokenizer, error=EvaluatorError)
     ex = meta["extra"]
     tex, rate = tok_meta["extra"], int(ex["rate"])
+    if fps is not None and abs(float(tex["fps"]) - fps) > 1e-6:
+        raise EvaluatorError(f"{gpt} generates motion at {float(tex['fps']):g} fps (its tokenizer {tok_run}'s); the "
+                             f"data and the evaluator are at {fps:g} fps")
+    if int(tex["feature_dim"]) != ref.clips[0].shape[1]:
+        raise EvaluatorError(f"{gpt} generates {tex['feature_dim']}-d features (its tokenizer {tok_run}'s); the data "
+                             f"has {ref.clips[0].shape[1]}-d ones")
     rng = np.random.default_rng([cfg.seed, 7])
     jobs = []  # (text, target tokens or None, labels)
     for s in range(cfg.gen_sets):

@@ -34,6 +34,15 @@ def prompts_of(data: str | Path, sets: list[str] | tuple[str, ...] = PROMPT_SETS
     return [(s, p) for s in sets for p in prompt_set(s, data, split)]
 
 
+def _like_the_data(what, fps: float, feature_dim: int, data: MotionFile) -> None:
+    """Refuse motion the classifier, fitted on ``data``'s features, cannot read: another feature
+    width, or another frame rate (the features hold per-frame velocities)."""
+    dim = int(data.h5["frames/features"].shape[1])
+    if abs(fps - data.fps) > 1e-6 or feature_dim != dim:
+        raise LabelsError(f"{what}: {feature_dim}-d features at {fps:g} fps; the classifier reads those of "
+                          f"{data.path}: {dim}-d at {data.fps:g} fps")
+
+
 def _labels(name: str, p: Prompt, **extra) -> dict:
     return {"prompt_set": name, "content": p.content, **({"style": p.style} if p.style else {}),
             "text": p.text, **extra}
@@ -56,6 +65,8 @@ def generate_prompts(gpt: str | Path, data: str | Path, out: str | Path, *, sets
     jobs = prompts_of(data, sets, split)
     model, meta, tok, tok_meta, tok_run, cache = load_for_sampling(gpt, tokenizer, error=LabelsError, snap=snap)
     ex, tex = meta["extra"], tok_meta["extra"]
+    with MotionFile(data) as mf:
+        _like_the_data(f"{gpt} (its tokenizer {tok_run})", float(tex["fps"]), int(tex["feature_dim"]), mf)
     g = float(model.default_guidance if guidance is None else guidance)
     check_guidance(model, g)
     texts = list(dict.fromkeys(p.text for _, p in jobs))
@@ -145,6 +156,10 @@ def labels_report(data: str | Path, *, motions: list[Path] = (), gpt: str | Path
     if not motions and gpt is None and retrieval is None:
         raise LabelsError("nothing to score: give --motions, --gpt or --retrieval")
     cfg = cfg or LabelsConfig()
+    with MotionFile(data) as mf:
+        for m in motions:
+            with MotionFile(m) as other:
+                _like_the_data(m, other.fps, int(other.h5["frames/features"].shape[1]), mf)
     tmp = Path(tempfile.mkdtemp(prefix="motok-labels-"))
     try:
         jobs: list[tuple[str, Path, dict]] = [(Path(m).stem, Path(m), {}) for m in motions]

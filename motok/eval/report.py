@@ -40,6 +40,14 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
     if int(ex["feature_dim"]) != ref.clips[0].shape[1]:
         raise EvaluatorError(f"{data} has {ref.clips[0].shape[1]}-d features; {evaluator} was trained on "
                              f"{ex['feature_dim']}-d ones")
+    # Before any row is made: the evaluator reads per-frame velocities, so every row must be at its rate.
+    _same_rate(data, info["fps"], ex, evaluator)
+    for p in motions:
+        with MotionFile(p) as mf:
+            _same_rate(p, mf.fps, ex, evaluator)
+            if int(mf.h5["frames/features"].shape[1]) != int(ex["feature_dim"]):
+                raise EvaluatorError(f"{p} has {mf.h5['frames/features'].shape[1]}-d features; {evaluator} was "
+                                     f"trained on {ex['feature_dim']}-d ones")
     if cfg.captions not in ("all", "unseen"):
         raise EvaluatorError(f"captions must be all or unseen, not {cfg.captions!r}")
     try:
@@ -58,9 +66,9 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
                                  f"{cfg.train_split}; --captions unseen needs 2+")
     rows = [ref] if real else []
     if tokenizer is not None:
-        rows.append(recon_set(ref, Path(tokenizer), info["num_joints"]))
+        rows.append(recon_set(ref, Path(tokenizer), info))
     if gpt is not None:
-        rows.append(generated_set(Path(gpt), tokenizer, ref, cfg, save_generated))
+        rows.append(generated_set(Path(gpt), tokenizer, ref, cfg, save_generated, fps=info["fps"]))
     rows += [motion_set(Path(p), split=cfg.split, tracked_to_end=cfg.tracked_to_end) for p in motions]
     if cfg.tracked_to_end and not any(r.extra.get("tracked_clips") for r in rows):
         raise EvaluatorError("--tracked-to-end: no --motions file holds clips written by `motok control track` "
@@ -86,6 +94,12 @@ def t2m(evaluator: Path, data: Path, cfg: T2MConfig, tokenizer: Path | None = No
             "text_encoder": ev_text, "data": str(data), "split": cfg.split, "captions": cfg.captions,
             "caption_overlap": overlap, "label_ceiling": label_ceiling(ref.labels or [], cfg.batch, cfg.top_k),
             "clips": len(ref.clips), "rows": results, "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def _same_rate(path, fps: float, ex: dict, evaluator) -> None:
+    if "fps" in ex and abs(float(fps) - float(ex["fps"])) > 1e-6:
+        raise EvaluatorError(f"{path} is at {float(fps):g} fps; {evaluator} was trained at {float(ex['fps']):g} fps "
+                             f"and reads motion at that rate only")
 
 
 COLUMNS = [("R@1", "R@1 ↑"), ("R@2", "R@2 ↑"), ("R@3", "R@3 ↑"), ("FID", "FID ↓"), ("MM-Dist", "MM-Dist ↓"),
@@ -186,7 +200,7 @@ def recon(data: Path, split: str = "test", tokenizer: Path | None = None, motion
     (each pair cut to the shorter length: a tokenizer drops the frames past its last token)."""
     ref, info = real_set(Path(data), split)
     if tokenizer is not None:
-        ms = recon_set(ref, Path(tokenizer), info["num_joints"], num_codebooks)
+        ms = recon_set(ref, Path(tokenizer), info, num_codebooks)
         return {"data": str(data), "split": split, "tokenizer": str(tokenizer), "clips": len(ms.clips),
                 **ms.extra["recon"]}
     if motions is None:
@@ -194,6 +208,9 @@ def recon(data: Path, split: str = "test", tokenizer: Path | None = None, motion
     by_name = dict(zip(info["names"], ref.joints))
     errs = {"mpjpe": [], "mpjpe_global": [], "accel": []}
     with MotionFile(motions) as mf:
+        if abs(mf.fps - info["fps"]) > 1e-6 or list(mf.skeleton.joints) != info["joints"]:
+            raise EvaluatorError(f"{motions}: {mf.skeleton.num_joints} joints at {mf.fps:g} fps; {data} has "
+                                 f"{info['num_joints']} at {info['fps']:g}: frames are compared one to one")
         pairs = [(i, by_name[n]) for i, n in enumerate(mf.names) if n in by_name]
         if not pairs:
             raise EvaluatorError(f"{motions}: no clip named like a {split} clip of {data} (first: {mf.names[:3]})")

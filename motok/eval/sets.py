@@ -60,18 +60,24 @@ def real_set(data: Path, split: str) -> tuple[MotionSet, dict]:
         joints = [mf.frames("joints", i) for i in idx]
         sk = mf.skeleton
         info = {"fps": mf.fps, "feet": (tuple(sk.feet_left), tuple(sk.feet_right)), "num_joints": sk.num_joints,
-                "names": sd.names, "labels": sd.labels}
+                "names": sd.names, "labels": sd.labels, "path": str(data), "joints": list(sk.joints),
+                "legacy": mf.legacy, "feature_dim": int(mf.h5["frames/features"].shape[1])}
     return MotionSet("real motion", sd.clips, sd.captions, joints=joints, extra={"num_joints": sk.num_joints},
                      labels=sd.labels, names=list(sd.names)), info
 
 
-def recon_set(ref: MotionSet, tokenizer: Path, num_joints: int, num_codebooks: int | None = None) -> MotionSet:
-    """Every clip through the tokenizer (cut to a multiple of its rate, as ``tokenize eval``)."""
+def recon_set(ref: MotionSet, tokenizer: Path, info: dict, num_codebooks: int | None = None) -> MotionSet:
+    """Every clip through the tokenizer (cut to a multiple of its rate, as ``tokenize eval``);
+    ``info``: what :func:`real_set` says of the data, which the tokenizer must have been trained on
+    the like of (feature width, frame rate, joints, convention)."""
     import torch
 
     from motok.tokenizer.model import load_tokenizer
+    from motok.tokenizer.tokens import check_codebooks, check_motion
     model, meta = load_tokenizer(tokenizer)
-    m = num_codebooks or model.num_codebooks
+    check_motion(meta, info["path"], info["feature_dim"], info["fps"], info["joints"], info["legacy"])
+    m = check_codebooks(model, num_codebooks)
+    num_joints = info["num_joints"]
     clips, caps, kept, err = [], [], [], {"mpjpe": [], "mpjpe_global": [], "accel": []}
     with torch.no_grad():
         for k, (c, cap, j) in enumerate(zip(ref.clips, ref.captions, ref.joints)):

@@ -200,6 +200,9 @@ def load_for_sampling(run: str | Path, tokenizer: str | Path | None = None, allo
     if tok_meta["model_sha256"] != ex["tokenizer_sha256"] and not allow_mismatch:
         raise error(f"{tok_run} is not the tokenizer {run} was trained with (sha256 {tok_meta['model_sha256'][:12]} "
                     f"vs {ex['tokenizer_sha256'][:12]}); pass --tokenizer or --allow-mismatch")
+    from motok.tokenizer.tokens import check_codes_fit
+    check_codes_fit(tok_model, tok_run, run, int(ex["codebook_size"]), int(ex["rate"]), int(ex.get("codebook", 0)) + 1,
+                    error=error)
     # A missing cache only costs encoding the texts again.
     cache = TextEmbeddingCache(bundle_ref(run, meta, "text_cache", required=False))
     k = int(meta["config"].get("snap", 0) if snap is None else snap)

@@ -91,23 +91,52 @@ def _tokenizer_id(run: Path, meta: dict, out: Path) -> dict:
             "tokenizer_config": json.dumps(meta["config"], sort_keys=True)}
 
 
-def check_codebooks(model, num_codebooks: int | None) -> int:
-    """The number of codebooks to use: ``num_codebooks`` (1 to the tokenizer's), else all of them."""
+def check_codebooks(model, num_codebooks: int | None, codes: tuple | None = None) -> int:
+    """The number of codebooks to use: ``num_codebooks`` (1 to the tokenizer's), else all of them;
+    ``codes``: ``(where, columns)`` of codes to decode, which must hold that many codebooks too."""
     n = model.num_codebooks
     if num_codebooks is not None and not 1 <= num_codebooks <= n:
         raise TokenizerError(f"--codebooks {num_codebooks}: the tokenizer has {n} codebook(s)")
+    if codes is not None and (num_codebooks or n) > codes[1]:
+        raise TokenizerError(f"--codebooks {num_codebooks or n}: {codes[0]} has codes of {codes[1]} codebook(s) only")
     return num_codebooks or n
 
 
+def check_codes_fit(model, run, codes_from, codebook_size: int, rate: int, codebooks: int = 1,
+                    error: type[Exception] = ArtifactError) -> None:
+    """Refuse a tokenizer (``run``, even one allowed to differ) that cannot decode the codes of
+    ``codes_from``: codes of another codebook size (some past its codebook), another rate (a code
+    would span another number of frames), or more codebooks than it has."""
+    have = (int(model.quantizer.codebook_size), int(model.rate), int(model.num_codebooks))
+    if have[0] != codebook_size or have[1] != rate or have[2] < codebooks:
+        raise error(f"{run} decodes {have[2]} codebook(s) of {have[0]} codes, {have[1]} frames per code; the codes of "
+                    f"{codes_from} need {codebooks}+ codebook(s) of {codebook_size} codes, {rate} frames per code")
+
+
 def _check_data(mf: MotionFile, meta: dict) -> None:
-    check_feature_dim(int(mf.h5["frames/features"].shape[1]), meta, mf.path)
+    check_motion(meta, mf.path, int(mf.h5["frames/features"].shape[1]), mf.fps, mf.skeleton.joints, mf.legacy)
 
 
-def check_feature_dim(fd: int, meta: dict, where) -> None:
-    """Refuse features of another width than the tokenizer's (another skeleton's)."""
-    if fd != int(meta["extra"]["feature_dim"]):
-        raise ArtifactError(f"{where}: features have {fd} dims, the tokenizer expects {meta['extra']['feature_dim']} "
-                            f"(trained on a {meta['extra']['num_joints']}-joint skeleton)")
+def check_motion(meta: dict, where, feature_dim: int, fps: float | None = None, joints=None,
+                 legacy: bool | None = None) -> None:
+    """Refuse motion unlike the tokenizer's training data: features of another width (another
+    skeleton), another frame rate (the features hold per-frame velocities, and a code covers a
+    fixed number of frames), other joints, or the other feature convention (``--legacy``)."""
+    ex = meta["extra"]
+    if feature_dim != int(ex["feature_dim"]):
+        raise ArtifactError(f"{where}: features have {feature_dim} dims, the tokenizer expects {ex['feature_dim']} "
+                            f"(trained on a {ex['num_joints']}-joint skeleton)")
+    if fps is not None and abs(float(fps) - float(ex["fps"])) > 1e-6:
+        raise ArtifactError(f"{where}: motion at {float(fps):g} fps, the tokenizer was trained at {float(ex['fps']):g} "
+                            f"fps; preprocess it with --fps {float(ex['fps']):g}")
+    theirs = [row[0] for row in ex["skeleton"]["joints"]]
+    if joints is not None and list(joints) != theirs:
+        raise ArtifactError(f"{where}: its joints are not those of the tokenizer's skeleton "
+                            f"{ex['skeleton']['name']!r} ({', '.join(theirs[:3])}, ...)")
+    if legacy is not None and bool(legacy) != bool(ex["legacy"]):
+        made = "with" if ex["legacy"] else "without"
+        raise ArtifactError(f"{where}: features made {'with' if legacy else 'without'} --legacy, the tokenizer's "
+                            f"{made} it; preprocess it {made} --legacy")
 
 
 # --------------------------------------------------------------------------- encode
@@ -124,6 +153,8 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
     with MotionFile(data) as mf:
         _check_data(mf, meta)
         which = mf.split_indices(split) if split else range(len(mf))
+        if not which:
+            raise TokenizerError(f"{data}: no clip in split {split!r} (splits: {sorted(set(mf.splits))})")
         total = sum(int(mf.frame_offsets[i + 1] - mf.frame_offsets[i]) for i in which)
         with _progress.make_progress("frames") as bar:
             task = bar.add_task("encode", total=total)
@@ -179,6 +210,9 @@ def encode(run: str | Path, data: str | Path, out: str | Path, num_codebooks: in
 class TokenFile(ClipFile):
     """Read access to a ``tokens`` artifact: per-clip indices ``(L, N)`` and captions."""
 
+    REQUIRED = (*ClipFile.REQUIRED, "clips/frames", "clips/source_frames")
+    ROWS = ("tokens",)
+
     def __init__(self, path: str | Path):
         super().__init__(path, KIND)
         a = self.h5.attrs
@@ -216,7 +250,9 @@ def decode(run: str | Path, tokens: str | Path, out: str | Path, num_codebooks: 
         if tf.tokenizer_sha256 != meta["model_sha256"] and not allow_mismatch:
             raise ArtifactError(f"{tokens} was encoded by another tokenizer ({tf.provenance.config.get('tokenizer')}, "
                                 f"sha256 {tf.tokenizer_sha256[:12]}) than {run} ({meta['model_sha256'][:12]})")
-        m = check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks))
+        check_codes_fit(model, run, tokens, tf.codebook_size, tf.rate)
+        m = check_codebooks(model, num_codebooks or min(tf.num_codebooks, model.num_codebooks),
+                            (tokens, tf.num_codebooks))
         skeleton = tok.skeleton
         clips = []
         with _progress.make_progress("clips") as bar:

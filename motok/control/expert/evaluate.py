@@ -7,7 +7,6 @@ from dataclasses import asdict
 from pathlib import Path
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import write_json
 from motok.control import runs
 from motok.control.expert.model import load_expert
 from motok.control.tasks.imitation import by_group, evaluate
@@ -37,5 +36,5 @@ def evaluate_run(run, *, data=None, clips: str | None = None, split: str | None 
                                                         "task": asdict(cfg.task)},
                       inputs=hash_inputs([src]))
     res = {"kind": "control-expert-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
-    write_json(run / (f"eval_{split}.json" if split else "eval.json"), res)
+    runs.write_evaluation(run / (f"eval_{split}.json" if split else "eval.json"), res)
     return res

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import write_json
 from motok.config import load_config, to_dict
 from motok.control import runs
 from motok.control.highlevel.policy import TaskTrainConfig, load_task_run, task_mdp
@@ -91,7 +90,13 @@ def with_task_settings(cfg: TaskTrainConfig, sets: list[str]) -> TaskTrainConfig
         raise UserError(f"--set on an evaluation changes task settings only (tasks.NAME.KEY=VALUE), not {bad}")
     if not sets:
         return cfg
-    return load_config(TaskTrainConfig, overrides=sets, base=to_dict(cfg))
+    new = load_config(TaskTrainConfig, overrides=sets, base=to_dict(cfg))
+    read = registry.settings_read(new.task, new.tasks)
+    unread = [s for s in sets if s.strip().split("=", 1)[0].split(".")[1] not in read]
+    if unread:
+        raise UserError(f"--set {unread[0]}: a {new.task!r} policy reads only "
+                        f"{', '.join(f'tasks.{n}' for n in read)}; that setting would change nothing")
+    return new
 
 
 @checked(episodes=">= 1", seed=">= 0")
@@ -113,7 +118,7 @@ def evaluate_run(run, *, episodes: int = 256, seed: int = 0, data=None, clips: s
                       inputs=hash_inputs([src]))
     res["provenance"] = json.loads(prov.to_json())
     path = run / (f"eval_{res['task']}" + (f"_{split}" if split else "") + ".json")
-    write_json(path, res)
+    runs.write_evaluation(path, res)
     res["written"] = str(path)
     return res
 

@@ -10,7 +10,6 @@ from dataclasses import asdict
 from pathlib import Path
 
 from motok.artifacts import Provenance, command_line, hash_inputs
-from motok.atomic import write_json
 from motok.control import runs
 from motok.control.priors.load import StudentPolicy, check_codebooks
 from motok.control.priors.model import load_prior
@@ -51,6 +50,6 @@ def evaluate_prior(run, *, task: str = "imitation", data=None, clips: str | None
                       inputs=hash_inputs([src]))
     res = {"kind": "control-prior-eval", "schema_version": 1, **res, "provenance": json.loads(prov.to_json())}
     name = "eval" + (f"_{split}" if split else "") + (f"_m{codebooks}" if codebooks else "") + ".json"
-    write_json(run / name, res)
+    runs.write_evaluation(run / name, res)
     res["written"] = str(run / name)
     return res

@@ -82,6 +82,8 @@ def load_controller(expert=None, prior=None, codebooks: int | None = None) -> Co
     if (expert is None) == (prior is None):
         raise UserError("track with one controller: --expert RUN or --prior PRIOR")
     if expert is not None:
+        if codebooks is not None:  # an expert's action has no codebooks: taking it would change nothing
+            raise UserError(f"--codebooks {codebooks}: selects a prior's codebooks; the expert {expert} has none")
         cfg, hum, ac, meta = load_expert(expert)
         return Controller(cfg, hum, ac, meta)
     cfg, hum, model, meta = load_prior(prior)

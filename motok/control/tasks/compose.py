@@ -265,4 +265,5 @@ def report(res: dict, data, lib) -> dict:
 
 # Two active codebooks: the hand goal is a body point to follow, as head tracking's is, which the paper
 # learns with 2 (Table 7) where navigation alone has 1 (Table 8).
-SPEC = TaskSpec("compose", ComposeTaskConfig, ComposeTask, evaluate_compose, report, codebooks=2)
+SPEC = TaskSpec("compose", ComposeTaskConfig, ComposeTask, evaluate_compose, report, codebooks=2,
+                reads=lambda cfg: ("navigation",))

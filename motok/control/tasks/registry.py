@@ -30,6 +30,10 @@ def _as_is(res: dict, data, lib) -> dict:
     return res
 
 
+def _own_only(cfg) -> tuple[str, ...]:
+    return ()
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     """One task as the trainer, the evaluations and the command line see it."""
@@ -42,6 +46,14 @@ class TaskSpec:
     # The active codebooks M the paper learns the task with over a residual prior (Tables 6-8), the
     # default of a run's ``codebooks``; None: all of the prior's (a task the paper does not have).
     codebooks: int | None = None
+    # The other tasks whose settings (tasks.NAME) it reads, from its own config: a multitask's
+    # sub-tasks, compose's navigation. What an evaluation's --set may change besides its own.
+    reads: Callable = _own_only
+
+
+def settings_read(name: str, cfgs) -> list[str]:
+    """The ``tasks.NAME`` sections the task ``name`` reads, with every task's settings ``cfgs``."""
+    return [name, *spec(name).reads(getattr(cfgs, name))]
 
 
 def names() -> list[str]:

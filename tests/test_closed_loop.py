@@ -86,6 +86,38 @@ def test_without_replans_the_loop_is_the_open_loop_to_the_bit(tree, controllers,
     assert script("track_failures").content_of(report, small_dataset, "train") == {}
 
 
+def test_clips_of_a_generated_set_keep_their_seeds(tree, controllers, tmp_path):
+    """--clips makes a chosen part of a generated set again: the second clip alone, without re-plans,
+    draws the open loop's plan (its seed is its index in the file, not in the subset) and is
+    simulated as there (to float rounding); a glob matching nothing, and --clips without --data, are
+    refused before any work."""
+    from motok.control.closed_loop.loop import check_options, closed_loop
+    from motok.control.text_to_physics import text_to_physics
+    from motok.errors import UserError
+
+    text_to_physics(tree / "gpt", TEXTS, tmp_path / "open.h5", prior=controllers[0], **SAMPLING)
+    with MotionFile(tmp_path / "open.kinematic.h5") as k:
+        names = list(k.names)
+    assert len(names) == 2
+    closed_loop(tree / "gpt", tmp_path / "one.h5", data=tmp_path / "open.kinematic.h5", clips=names[1],
+                prior=controllers[0], replan_every=None)
+    with MotionFile(tmp_path / "open.kinematic.h5") as k, MotionFile(tmp_path / "one.plans.h5") as p, \
+            MotionFile(tmp_path / "open.h5") as o, MotionFile(tmp_path / "one.h5") as c:
+        assert list(c.names) == [names[1]]
+        assert p.clip(f"{names[1]}.plan00").labels["codes"] == k.clip(names[1]).labels["codes"]  # the same draw
+        a, b = o.clip(names[1]), c.clip(names[1])
+        # simulated alone rather than beside another clip: the policy's batched matmuls may round otherwise
+        assert a.labels["tracked_to_end"] == b.labels["tracked_to_end"]
+        assert np.allclose(a.joints, b.joints, atol=1e-5)
+    with pytest.raises(UserError, match="matches 'nothing-\\*'"):
+        closed_loop(tree / "gpt", tmp_path / "none.h5", data=tmp_path / "open.kinematic.h5", clips="nothing-*",
+                    prior=controllers[0], replan_every=None)
+    assert not (tmp_path / "none.h5").exists()
+    with pytest.raises(UserError, match="--clips chooses clips of --data"):
+        check_options(texts=TEXTS, then=[], data=None, replan_every=None, closed_loop=True, simulated=True,
+                      clips="gen-*")
+
+
 def test_a_pushed_character_is_where_the_next_plan_starts(steady):
     """The character is displaced 0.8 m and turned 90 degrees half a second in; the re-plan at 0.8 s
     conditions the GPT on the tokenizer's encoding of the simulated window (the push in it), and

@@ -119,6 +119,8 @@ def sample(
     data: Optional[Path] = data_option("With --closed-loop: a generated motion artifact (e.g. from `eval t2m "
                                        "--save-generated`) made again in the closed loop: each clip's text, length "
                                        "and seed.", required=False),
+    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="With --data: only its clips whose "
+                                        "name matches (each keeps its seed), e.g. 'gen-*0' for every tenth."),
     as_json: bool = JsonOut,
 ):
     """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went. With
@@ -133,18 +135,18 @@ def sample(
     opts = dict(num_samples=num_samples, seed=seed, temperature=temperature, top_k=top_k, top_p=top_p,
                 argmax=argmax, seconds=seconds, render=render, bvh=bvh, tokenizer=tokenizer,
                 allow_mismatch=allow_mismatch, guidance=guidance, snap=snap)
-    if closed_loop or then or replan_every is not None or data is not None:
+    if closed_loop or then or replan_every is not None or data is not None or clips is not None:
         from motok.control.closed_loop.loop import REPLAN_EVERY, check_options
         from motok.control.closed_loop.loop import closed_loop as _closed_loop
         run(check_options, texts=texts, then=then, data=data, replan_every=replan_every, closed_loop=closed_loop,
-            simulated=prior is not None or expert is not None)
+            simulated=prior is not None or expert is not None, clips=clips)
         from motok.cli.output_files import refuse_foreign
         from motok.control.closed_loop.files import plans_path, report_path
         for beside in (plans_path(out), report_path(out)):  # the files written beside the motion
             run(refuse_foreign, beside, "-o")
         every = (REPLAN_EVERY if replan_every is None else replan_every) if closed_loop else None
         _report_loop(run(_closed_loop, gpt, out, texts=texts, then=then, data=data, replan_every=every, prior=prior,
-                         expert=expert, codebooks=codebooks, **opts), as_json)
+                         expert=expert, codebooks=codebooks, clips=clips, **opts), as_json)
         return
     if prior is None and expert is None and codebooks is None:
         _report(run(_sample, gpt, texts, out, **opts), as_json, "gpt sample")

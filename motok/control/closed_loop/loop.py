@@ -54,18 +54,22 @@ def clock_of(gpt, tokenizer=None, control_hz: float = 30.0) -> Clock:
     return Clock(float(read_meta(tok)["extra"]["fps"]), int(meta["extra"]["rate"]), float(control_hz), block - 1)
 
 
-def rows_from_motion(path, clock: Clock, seed: int = 0) -> list[Row]:
+def rows_from_motion(path, clock: Clock, seed: int = 0, clips: str | None = None) -> list[Row]:
     """The motions of a generated motion artifact (``eval t2m --save-generated``, ``gpt sample``),
     to be made again in the closed loop: each clip's text (label ``text``, else its first caption),
-    length in tokens, seed (label ``seed``, else ``seed`` + its index), labels, captions, split."""
+    length in tokens, seed (label ``seed``, else ``seed`` + its index in the file, so that a subset
+    chosen by the glob ``clips`` keeps each clip's seed), labels, captions, split."""
     from motok.artifacts import read_strings
-    from motok.data.dataset import MotionFile
+    from motok.data.dataset import MotionFile, select_clips
 
     rows = []
     with MotionFile(path) as mf:
         labels = read_strings(mf.h5["clips/labels"])
         frames = np.diff(mf.frame_offsets)
+        chosen = set(select_clips(mf, clips)) if clips else None
         for k, name in enumerate(mf.names):
+            if chosen is not None and name not in chosen:
+                continue
             lab = json.loads(labels[k]) if labels[k] else {}
             caps = mf.captions(k, tokens=True)
             text = lab.get("text") or (caps[0][0] if caps else "")
@@ -124,8 +128,10 @@ def run(planner: Planner, controller, rows: list[Row], every: int | None, *, pus
     return out
 
 
-def check_options(*, texts, then, data, replan_every, closed_loop: bool, simulated: bool) -> None:
+def check_options(*, texts, then, data, replan_every, closed_loop: bool, simulated: bool, clips=None) -> None:
     """The option errors that need no file: one line each, before any work."""
+    if clips is not None and data is None:
+        raise UserError("--clips chooses clips of --data (a generated set made again in the closed loop): add --data")
     if not closed_loop and replan_every is not None:
         raise UserError("--replan-every goes with --closed-loop")
     if (then or data is not None or closed_loop) and not simulated:
@@ -144,17 +150,18 @@ def closed_loop(gpt, out, *, texts=(), then=(), data=None, seconds: float | None
                 seed: int = 0, replan_every: float | None = REPLAN_EVERY, prior=None, expert=None, codebooks=None,
                 render=None, bvh=None, tokenizer=None, allow_mismatch: bool = False, snap=None,
                 temperature: float = 1.0, top_k=None, top_p=None, argmax: bool = False, guidance=None,
-                change_mm: float = CHANGE_MM, batch: int = 64, push=None) -> dict:
+                change_mm: float = CHANGE_MM, batch: int = 64, push=None, clips: str | None = None) -> dict:
     """Generate and simulate in the closed loop and write ``out``, ``OUT.kinematic.h5``,
     ``OUT.plans.h5`` and the report (module docstring): ``texts`` (``num_samples`` each; one text
-    with ``then``, ``[(time, text)]``, is a timeline) or the clips of the generated set ``data``;
+    with ``then``, ``[(time, text)]``, is a timeline) or the clips of the generated set ``data`` (those
+    matching the glob ``clips``, if given);
     ``replan_every`` seconds (None: only at prompt switches and when a plan runs out). Every
     option is checked before anything is loaded. Returns the report."""
     from motok.atomic import check_writable, write_json
     from motok.control.text_to_physics import H5, VIDEO, kinematic_path, load_physics_controller
     from motok.gpt.sample import check_sampling
 
-    check_options(texts=texts, then=then, data=data, replan_every=None, closed_loop=True, simulated=True)
+    check_options(texts=texts, then=then, data=data, replan_every=None, closed_loop=True, simulated=True, clips=clips)
     out = check_writable(out, suffixes=H5)
     for path, what in ((kinematic_path(out), "the kinematic motion"), (plans_path(out), "the plans")):
         check_writable(path, what=what)
@@ -167,7 +174,7 @@ def closed_loop(gpt, out, *, texts=(), then=(), data=None, seconds: float | None
         check_sampling(list(texts), num_samples=num_samples, seconds=seconds, **sampling)
     clock = clock_of(gpt, tokenizer)
     every = clock.tokens(replan_every, "--replan-every") if replan_every is not None else None
-    rows = rows_from_motion(data, clock, seed) if data is not None else \
+    rows = rows_from_motion(data, clock, seed, clips) if data is not None else \
         timeline_rows(list(texts), parse_then(list(then)), clock, seconds, num_samples, seed)
     controller = load_physics_controller(prior, expert, codebooks)
     hum = controller.humanoid
@@ -187,7 +194,7 @@ def closed_loop(gpt, out, *, texts=(), then=(), data=None, seconds: float | None
               "controller_kind": controller.meta.get("kind"), "codebooks": codebooks, "closed_loop": True,
               "replan_every_s": replan_every, "token_seconds": clock.token_seconds, "seconds": seconds,
               "texts": list(texts), "then": [list(x) for x in parse_then(list(then))] if then else [],
-              "data": None if data is None else str(data), "seed": seed, "num_samples": num_samples,
+              "data": None if data is None else str(data), "clips": clips, "seed": seed, "num_samples": num_samples,
               "change_threshold_mm": change_mm, **sampling, "guidance": planner.sampling["guidance"]}
     report = write_outputs(out, batches, planner, controller, config, render=render, bvh=bvh)
     report.update(time_load_s=round(t_load - t0, 2), time_run_s=round(t_run - t_load, 2),

@@ -1,4 +1,4 @@
-"""Evaluation (issue 5): the metric formulas, physical plausibility, the evaluator and the t2m report."""
+"""Evaluation: the metric formulas, physical plausibility, the evaluator and the t2m report."""
 
 from __future__ import annotations
 

@@ -262,7 +262,7 @@ def test_torchrun_two_ranks_stay_identical(tiny_tokens, tmp_path):
     assert meta["extra"]["world_size"] == 2 and len(hashes) == 2 and hashes[0] == hashes[1] == meta["model_sha256"]
 
 
-# ----------------------------------------------------------------- issue 18: CFG, held-out wordings, augmentation
+# ----------------------------------------------------------------- CFG, held-out wordings, augmentation
 
 def test_classifier_free_guidance_mixes_the_two_logits():
     from motok.gpt.sample import check_guidance

@@ -1,5 +1,5 @@
 """Label accuracy (motok eval labels), the phrasing-held-out split, the retrieval baseline and the
-text-separation check (issue 18), on real Bandai-Namco set-2 motion."""
+text-separation check, on real Bandai-Namco set-2 motion."""
 
 from __future__ import annotations
 

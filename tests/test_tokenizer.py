@@ -1,4 +1,4 @@
-"""The motion tokenizer (issue 3): model shapes, loss, training on a real Bandai slice, exact
+"""The motion tokenizer: model shapes, loss, training on a real Bandai slice, exact
 resume, torchrun/DDP rank identity, encode -> decode artifacts, evaluation metrics, the CLI.
 
 Quantizer internals are tested in test_quantize.py; here the quantizers run inside the model.

@@ -104,7 +104,7 @@ def test_tracking_in_chunks_changes_nothing(pd_controller, small_dataset, tmp_pa
 
 
 def test_a_split_of_a_dataset_is_tracked(pd_controller, small_dataset, tmp_path):
-    """``split``: the clips of that split only (the real-test-motion row of issue 17's evaluation),
+    """``split``: the clips of that split only (the real-test-motion row of the text-to-physics evaluation),
     alone or with a glob; a split the data lacks is named."""
     from motok.errors import UserError
 

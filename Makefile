@@ -1,7 +1,7 @@
 # make demo: install into .venv and run the main job end to end on the default data
 #            (preprocess, tokenizer, GPT, text -> motion; about 13 minutes on 2 CPU cores, of which ~2 embed the captions with mpnet once; 370 MB caption cache).
 # make test: install the same way and run the test suite.
-# make demo-physics: the physics half at toy size (about 30 minutes on 2 quiet CPU cores; see the target).
+# make demo-physics: the physics half at toy size (about 33 minutes on 2 quiet CPU cores; see the target).
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -60,7 +60,7 @@ demo: install
 # character is; over 8 seeds of two GPT trainings it tracks as many walks to the end as the open loop,
 # and seed 0's on both trainings where the open loop did on one; docs/results.md) -> a navigation
 # policy over the frozen prior toward targets 1.5-4 m away (the paper's are up to 10 m, renewed every
-# 4 s: more than a half-hour budget learns), 600 iterations, evaluated and rendered. The GPT is always
+# 4 s: more than a half-hour budget learns), 1,000 iterations, evaluated and rendered. The GPT is always
 # trained here, on the clips the prior learnt, so the demo does not depend on `make demo` having run
 # (its whole-set GPT has not been measured through this prior). The physics updates run on one torch thread
 # (beside another job two threads spin against it); the tokenizer and GPT, alone at that point, on two.
@@ -72,7 +72,7 @@ PHYS_EXPERT_IT := 600
 PHYS_PRIOR_IT  := 200
 PHYS_TOKENIZER_IT := 1000
 PHYS_GPT_IT    := 500
-PHYS_NAV_IT    := 600
+PHYS_NAV_IT    := 1000
 PHYS_NAV   := --set tasks.navigation.min_distance=1.5 --set tasks.navigation.max_distance=4.0 \
 	--set tasks.navigation.retarget_seconds=6.0 --set tasks.navigation.episode_seconds=12.0
 

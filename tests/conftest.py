@@ -162,3 +162,14 @@ def unavailable(reason: str):
     if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
         pytest.fail(f"CI must run this test: {reason}")
     pytest.skip(reason)
+
+
+def require_module(name: str, reason: str):
+    """``name`` imported, or the test is `unavailable` (skips locally, fails under CI): the optional
+    extras CI installs (gpu, tensorboard) are then tested, never silently skipped."""
+    import importlib
+
+    try:
+        return importlib.import_module(name)
+    except ImportError:
+        unavailable(reason)

@@ -23,6 +23,7 @@ from motok.control.rl.rollout import Rollout
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.sim.env import HumanoidEnv, SimConfig
+from conftest import require_module
 from motok.sim.obs import Bodies, TreeKinematics, observation
 
 
@@ -121,7 +122,8 @@ def test_same_seed_same_trajectory(hum, lib):
 
 @pytest.mark.parametrize("stepper", ["batch", "rollout"])
 def test_batch_equals_single_envs(hum, lib, stepper):
-    pytest.importorskip("mujoco.batch") if stepper == "batch" else None
+    if stepper == "batch":
+        require_module("mujoco.batch", "this MuJoCo has no mujoco.batch")
     clips, frames = [0, 3, 7, 11], [0, 20, 41, 5]
     batch = _mdp(hum, lib, 4, stepper=stepper)
     batch.reset(clips=clips, frames=frames)

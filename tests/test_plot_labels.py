@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from motok.cli.main import app
 from motok.render.metric_names import BY_KIND, COMMON, Metric, describe, split_key
 from motok.render.plot import _figure, plot_run
-from conftest import unavailable
+from conftest import require_module
 
 from tiny_runs import tree  # noqa: F401  (fixture)
 
@@ -121,10 +121,7 @@ def test_tensorboard_event_files(tree, tmp_path, monkeypatch):  # noqa: F811
         m.setitem(sys.modules, "torch.utils.tensorboard", None)  # as if the extra were not installed
         r = runner.invoke(app, ["plot", str(tree / "gpt"), "-o", str(tmp_path / "c.png"), "--tensorboard", str(out)])
         assert r.exit_code == 2 and "pip install 'motok[tensorboard]'" in r.output, r.output
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        unavailable("tensorboard is not installed (make install EXTRAS=dev,tensorboard; .ci/run installs it)")
+    require_module("tensorboard", "tensorboard is not installed (make install EXTRAS=dev,tensorboard; .ci/run installs it)")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     for _ in range(2):  # the second conversion replaces the first

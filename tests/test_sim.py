@@ -14,6 +14,7 @@ from motok.sim.humanoid import HumanoidError, load_humanoid, to_mj
 from motok.sim.obs import TreeKinematics, observation
 from motok.sim.kinematics import body_states
 from motok.sim.reference import ReferenceError, build_library, load_library
+from conftest import require_module
 
 runner = CliRunner()
 
@@ -168,7 +169,7 @@ def test_body_states_equal_mujoco_frame_by_frame(hum, lib):
 # ----------------------------------------------------------------------------- environment
 
 def test_batch_stepper_is_plain_mujoco(hum, lib):
-    pytest.importorskip("mujoco.batch")
+    require_module("mujoco.batch", "this MuJoCo has no mujoco.batch")
     from motok.sim.steppers import BatchStepper
 
     m, g = hum.model, np.array([10, 500, 2000])
@@ -195,7 +196,8 @@ def test_batch_stepper_is_plain_mujoco(hum, lib):
 def test_physics_env_steps_pd_targets_and_contains_bad_ones(hum, lib, stepper):
     """The environment is physics only: states in, PD targets held for the substeps, Eq. 7 out;
     a batch equals its environments run one by one; non-finite targets hold that env's pose."""
-    pytest.importorskip("mujoco.batch") if stepper == "batch" else None
+    if stepper == "batch":
+        require_module("mujoco.batch", "this MuJoCo has no mujoco.batch")
     g = np.array([10, 500, 2000])
     env = HumanoidEnv(hum, SimConfig(num_envs=3, stepper=stepper, nan_actions="terminate"))
     singles = [HumanoidEnv(hum, SimConfig(num_envs=1, stepper=stepper)) for _ in g]

@@ -18,13 +18,14 @@ import pytest
 from motok.errors import UserError
 from motok.sim.env import HumanoidEnv, SimConfig
 from motok.sim.steppers import make_stepper
+from conftest import require_module
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
 def warp():
-    pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed (pip install 'motok[gpu]')")
+    require_module("mujoco_warp", "MuJoCo Warp is not installed (pip install 'motok[gpu]'; .ci/run installs it)")
     return "warp"
 
 
@@ -495,7 +496,7 @@ def test_device_option_of_the_commands(small_dataset, hum, tmp_path, monkeypatch
     assert r.exit_code == 2 and ("no CUDA driver" in r.output or "motok[gpu]" in r.output), r.output
     r = runner.invoke(app, base + ["-o", str(tmp_path / "tpu"), "--device", "tpu"])
     assert r.exit_code == 2 and "use cpu or cuda" in r.output, r.output
-    pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed (pip install 'motok[gpu]')")
+    require_module("mujoco_warp", "MuJoCo Warp is not installed (pip install 'motok[gpu]'; .ci/run installs it)")
     run = tmp_path / "run"
     r = runner.invoke(app, base + ["-o", str(run), "--device", "cpu", "--set", "env.backend=warp", "--json"])
     assert r.exit_code == 0, r.output

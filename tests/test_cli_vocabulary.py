@@ -214,3 +214,16 @@ def test_the_note_comes_before_an_error_about_the_option(tmp_path):
     assert lines[-1] == f"error: {tmp_path / 'nope'}: no such file or directory (--policy)"
     r = CliRunner().invoke(app, ["control", "perturb", "--run", str(tmp_path / "nope"), "-q"])
     assert r.exit_code == 2 and "note:" not in r.stderr
+
+
+def test_clips_and_split_read_the_same_in_every_command():
+    """Declared once (cli.common.clips_option / split_option): a command that spelled its own would
+    show another metavar in --help, or none."""
+    want = {"--clips": "GLOB", "--split": "train|val|test"}
+    seen = defaultdict(list)
+    for path, cmd in _distinct():
+        for name, p, _ in _options(cmd):
+            if name in want:
+                seen[name].append(" ".join(path))
+                assert p.metavar == want[name], f"motok {' '.join(path)} {name}: metavar {p.metavar!r}"
+    assert len(seen["--clips"]) >= 10 and len(seen["--split"]) >= 10, dict(seen)

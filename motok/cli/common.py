@@ -19,9 +19,9 @@ from motok import progress
 from motok.atomic import strict_json
 from motok.errors import MotokError
 
-__all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "data_option",
+__all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "clips_option", "data_option",
            "device_sets", "existing", "fail", "input_option", "number_option", "output_option", "print_json",
-           "recipe_option", "report", "results", "run", "valid_device", "wrote"]
+           "recipe_option", "report", "results", "run", "split_option", "valid_device", "wrote"]
 
 # Results (tables, JSON, what was written) go to stdout; progress, notes and errors to stderr
 # (motok.progress.console), so `motok ... --json | jq` and `> log` both work.
@@ -139,6 +139,18 @@ def input_option(*names: str, help: str, required: bool = True):
 def data_option(help: str, required: bool = True):
     """The main input of a command, ``--data``/``-d`` everywhere (motok.cli.conventions)."""
     return input_option("--data", "-d", help=help, required=required)
+
+
+def clips_option(help: str):
+    """``--clips GLOB``: the clip-name filter every command that reads clips takes (``pattern:`` in
+    a recipe); ``help`` says what it filters and its default, which differ per command."""
+    return typer.Option(None, "--clips", metavar="GLOB", help=help)
+
+
+def split_option(default: str | None = None, *, help: str):
+    """``--split``: one split of a dataset's split files (checked against the file's splits when
+    it is read, since a dataset may carry its own)."""
+    return typer.Option(default, "--split", metavar="train|val|test", help=help)
 
 
 def check_output(ctx: typer.Context, path, label: str, *, folder: bool = False,

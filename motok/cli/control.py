@@ -9,8 +9,9 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (Device, Resume, data_option, device_sets, existing, number_option, output_option,
-                              print_json, recipe_option, report, results, run, valid_device)
+from motok.cli.common import (Device, Resume, clips_option, data_option, device_sets, existing, number_option,
+                              output_option, print_json, recipe_option, report, results, run, split_option,
+                              valid_device)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 
@@ -33,9 +34,8 @@ app.add_typer(expert_app, name="expert")
 def train_cmd(
     data: Path = data_option("A motion-dataset artifact (.h5)."),
     out: Path = output_option(help="Run folder (checkpoint bundle, metrics.jsonl).", folder=True),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB",
-                                        help="Clip-name glob, e.g. 'dataset-2_walk_normal*'."),
-    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
+    clips: Optional[str] = clips_option(help="Clip-name glob, e.g. 'dataset-2_walk_normal*'."),
+    split: Optional[str] = split_option(help="Only the clips of this split."),
     recipe: Optional[Path] = recipe_option("recipes/control/"),
     sets: list[str] = typer.Option([], "--set", metavar="KEY=VALUE",
                                    help="Override a config key: --set ppo.lr=1e-4 (repeatable)."),
@@ -70,10 +70,9 @@ def eval_cmd(
     run_dir: Path = typer.Option(..., "--expert", help="A control-expert run folder (from `control expert train`).",
                                  callback=existing),
     data: Optional[Path] = data_option("Dataset (default: the one it was trained on).", required=False),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB",
-                                        help="Clip-name glob (default: the training clips)."),
-    split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test) of the "
-                                        "dataset, with a table per content and per style."),
+    clips: Optional[str] = clips_option(help="Clip-name glob (default: the training clips)."),
+    split: Optional[str] = split_option(help="The clips of this split of the "
+                                             "dataset, with a table per content and per style."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
                                            suffixes=(".mp4", ".gif"), required=False),
     termination: Optional[str] = typer.Option(None, "--termination",

@@ -8,8 +8,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (H5, JsonOut, Sets, data_option, existing, fail, number_option, output_option, print_json,
-                              recipe_option, report, results, run)
+from motok.cli.common import (H5, JsonOut, Sets, clips_option, data_option, existing, fail, number_option,
+                              output_option, print_json, recipe_option, report, results, run, split_option)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 
@@ -51,8 +51,8 @@ def _t2m_command(
     motions: list[Path] = typer.Option([], "--motions", metavar="PATH",
                                        help="Add a row for any motion artifact (repeatable).", callback=existing),
     gt_length: bool = typer.Option(False, "--gt-length", help="Generate at the ground-truth length, not until End."),
-    split: Optional[str] = typer.Option(None, "--split", help="Split of --data (default test); --motions rows keep "
-                                         "their clips of it and those without a split (GPT samples)."),
+    split: Optional[str] = split_option(help="Split of --data (default test); --motions rows keep "
+                                             "their clips of it and those without a split (GPT samples)."),
     repeats: Optional[int] = number_option(None, "--repeats", help="Repeats (default 20).", within=f"{T2M}.repeats"),
     captions: Optional[str] = typer.Option(None, "--captions", metavar="all|unseen",
                                            help="unseen: only the captions that do not occur word for word in "
@@ -101,7 +101,7 @@ app.command("fid", help="Alias of `t2m`.", epilog=_T2M_EXAMPLES)(_t2m_command)
                                          "motok eval captions -d runs/bandai2.h5 --split val --json"))
 def captions_command(
     data: Path = data_option("A motion-dataset with captions and splits."),
-    split: str = typer.Option("test", "--split", help="The evaluated split."),
+    split: str = split_option("test", help="The evaluated split."),
     train_split: str = typer.Option("train", "--train-split", help="The split whose captions count as seen."),
     batch: int = number_option(32, "--batch", help="R-precision batch of the label-reader ceiling.",
                                within=f"{T2M}.batch"),
@@ -121,7 +121,7 @@ def recon(
     tokenizer: Optional[Path] = typer.Option(None, "--tokenizer", "-t", help="Reconstruct the split through it."),
     motions: Optional[Path] = typer.Option(None, "--motions", help="A reconstruction artifact (clips named "
                                            "as in --data, e.g. from `tokenize decode`).", callback=existing),
-    split: str = typer.Option("test", "--split", help="The split of --data to compare (train, val, test)."),
+    split: str = split_option("test", help="The split of --data to compare."),
     num_codebooks: Optional[int] = number_option(None, "--codebooks",
                                                  help="With --tokenizer: use only the first M codebooks.",
                                                  within=">= 1"),
@@ -137,7 +137,7 @@ def recon(
 @renamed(positional="--data")
 def physical(
     motion: Path = data_option("Any motion or motion-dataset artifact."),
-    split: Optional[str] = typer.Option(None, "--split", help="Only this split (datasets)."),
+    split: Optional[str] = split_option(help="Only this split (datasets)."),
     contact_tolerance: Optional[float] = number_option(None, "--contact-tolerance",
                                                        help="m: a toe this close to its resting height is in contact "
                                                            "(default 0.01).", within="> 0"),
@@ -161,8 +161,8 @@ def motion_matching(
     data: Path = data_option("The motion-dataset the generated transitions are matched against."),
     motions: list[Path] = typer.Option(..., "--motions", metavar="PATH", help="A generated motion artifact, one row "
                                        "each (repeatable).", callback=existing),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only these clips of --data."),
-    split: Optional[str] = typer.Option(None, "--split", help="Only this split of --data (train, val, test)."),
+    clips: Optional[str] = clips_option(help="Only these clips of --data."),
+    split: Optional[str] = split_option(help="Only this split of --data."),
     heldout: Optional[str] = typer.Option(None, "--heldout", metavar="SPLIT", help="Also match this split of --data, "
                                           "which the reference must not contain: its filtered rate checks the "
                                           "threshold on unseen clips."),

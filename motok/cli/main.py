@@ -14,8 +14,9 @@ from typing import Optional
 import typer
 
 from motok import __version__, progress
-from motok.cli.common import (DataRoot, H5, JsonOut, Sets, check_output, choose_mujoco_gl, data_option, existing,
-                              number_option, output_option, print_json, recipe_option, report, results, run, wrote)
+from motok.cli.common import (DataRoot, H5, JsonOut, Sets, check_output, choose_mujoco_gl, clips_option, data_option,
+                              existing, number_option, output_option, print_json, recipe_option, report, results, run,
+                              wrote)
 from motok.cli.control import app as control_app
 from motok.cli.conventions import MotokGroup, examples, renamed
 from motok.cli.eval import app as eval_app
@@ -79,8 +80,7 @@ def preprocess(
                                               help="HumanML3D-layout captions and splits. Default: the "
                                                    "Bandai-Namco annotations for the Bandai-Namco archives only; "
                                                    "any other input gets no captions and the split 'none'."),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB",
-                                        help="Only clips whose name matches, e.g. 'dataset-2_walk_*'."),
+    clips: Optional[str] = clips_option(help="Only clips whose name matches, e.g. 'dataset-2_walk_*'."),
     skeleton: Optional[str] = typer.Option(None, "--skeleton", help="smpl22, bandai21 or a YAML path "
                                            "(default: detected from the joint names)."),
     fps: Optional[float] = number_option(None, "--fps", help="Target frame rate, > 0 (default 20).",
@@ -171,7 +171,7 @@ def export_humanml3d_cmd(
     data: Path = MotionData,
     out: Path = output_option(help="Output folder, new or empty: new_joint_vecs/, new_joints/, texts/, split "
                               "files, Mean.npy, Std.npy.", folder=True),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only clips whose name matches."),
+    clips: Optional[str] = clips_option(help="Only clips whose name matches."),
     stats: str = typer.Option("train", "--stats", metavar="train|all", help="Mean.npy/Std.npy over the train split "
                               "(default) or over every exported clip (as HumanML3D's own script)."),
     as_json: bool = JsonOut,

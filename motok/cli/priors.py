@@ -11,8 +11,9 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (Device, H5, JsonOut, Resume, Sets, data_option, device_sets, fail, input_option,
-                              number_option, output_option, recipe_option, report, results, run, valid_device)
+from motok.cli.common import (Device, H5, JsonOut, Resume, Sets, clips_option, data_option, device_sets, fail,
+                              input_option, number_option, output_option, recipe_option, report, results, run,
+                              split_option, valid_device)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 from motok.control.priors.kinds import KINDS
@@ -33,9 +34,8 @@ def distill_cmd(
     recipe: Optional[Path] = recipe_option("recipes/control/prior_*.yaml"),
     sets: list[str] = Sets,
     data: Optional[Path] = data_option("Dataset (default: the one the expert was trained on).", required=False),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the expert's "
-                                        "clips)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
+    clips: Optional[str] = clips_option(help="Clip-name glob (default: the expert's clips)."),
+    split: Optional[str] = split_option(help="Only the clips of this split."),
     resume: bool = Resume, force: bool = Force,
     until: Optional[int] = number_option(None, "--until", help="Stop after this iteration (the weight schedules "
                                          "still span the recipe's iterations; --resume continues).", within=">= 1"),
@@ -66,9 +66,8 @@ def eval_cmd(
                                   within=">= 1"),
     seed: int = number_option(0, "--seed", help="Task policies: seed of the start states and targets.", within=">= 0"),
     data: Optional[Path] = data_option("Dataset (default: the one it was distilled on).", required=False),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
-                                        "distillation clips)."),
-    split: Optional[str] = typer.Option(None, "--split", help="The clips of this split (train, val, test)."),
+    clips: Optional[str] = clips_option(help="Clip-name glob (default: the distillation clips)."),
+    split: Optional[str] = split_option(help="The clips of this split."),
     codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="Decode with the first M codebooks only "
                                              "(residual priors; default: all).", within=">= 1"),
     render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
@@ -134,9 +133,8 @@ def generate_cmd(
     seed: int = number_option(0, "--seed", help="Seed of the start states and of the code draws.", within=">= 0"),
     data: Optional[Path] = data_option("Dataset of the start states (default: the one it was distilled on).",
                                        required=False),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Start from these clips (default: "
-                                        "the distillation clips)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Start from the clips of this split."),
+    clips: Optional[str] = clips_option(help="Start from these clips (default: the distillation clips)."),
+    split: Optional[str] = split_option(help="Start from the clips of this split."),
     render: Optional[Path] = output_option("--render", help="Video of the first sample (.mp4/.gif).",
                                            suffixes=(".mp4", ".gif"), required=False),
     as_json: bool = JsonOut,

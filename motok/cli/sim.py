@@ -10,7 +10,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import data_option, existing, fail, number_option, output_option, print_json, report, run, wrote
+from motok.cli.common import (JsonOut, clips_option, data_option, existing, fail, number_option, output_option,
+                              print_json, report, run, wrote)
 from motok.cli.conventions import examples, renamed
 
 # Config classes whose fields' ranges the options below share (motok.ranges.range_of).
@@ -27,7 +28,6 @@ HumanoidOpt = typer.Option(None, "--humanoid", help="Humanoid MJCF (default: bui
 Hz = number_option(None, "--hz", help="Control rate in Hz (default: the humanoid's, 30).", within=f"{SIM}.control_hz")
 Sets = typer.Option([], "--set", metavar="KEY=VALUE", help="Override a HumanoidConfig key (repeatable).")
 Stick = typer.Option(False, "--stick", help="Draw the stick figure instead of MuJoCo's renderer.")
-JsonOut = typer.Option(False, "--json", help="Print the result as JSON (on stdout; progress and notes go to stderr).")
 
 
 def _key(clip: str):
@@ -98,8 +98,7 @@ def replay(
 def pd_track_cmd(
     data: Path = Data,
     clip: Optional[str] = typer.Option(None, "--clip", help="One clip (name or index); needed for --render."),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="A clip-name glob (default: every "
-                                        "clip)."),
+    clips: Optional[str] = clips_option(help="A clip-name glob (default: every clip)."),
     render: Optional[Path] = output_option("--render", help="Video of the tracking, its reference as a ghost "
                                            "(.mp4/.gif); one clip only.", suffixes=VIDEO, required=False),
     humanoid: Optional[Path] = HumanoidOpt,

@@ -10,8 +10,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import (Device, JsonOut, Resume, Sets, data_option, device_sets, input_option, number_option,
-                              output_option, recipe_option, report, run)
+from motok.cli.common import (Device, JsonOut, Resume, Sets, clips_option, data_option, device_sets, input_option,
+                              number_option, output_option, recipe_option, report, run, split_option)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 from motok.control.tasks import registry
@@ -35,9 +35,8 @@ def train_cmd(
     sets: list[str] = Sets,
     data: Optional[Path] = data_option("Dataset of the start states and references (default: the prior's).",
                                        required=False),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: the "
-                                        "prior's clips)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test)."),
+    clips: Optional[str] = clips_option(help="Clip-name glob (default: the prior's clips)."),
+    split: Optional[str] = split_option(help="Only the clips of this split."),
     resume: bool = Resume, force: bool = Force,
     until: Optional[int] = number_option(None, "--until", help="Stop after this iteration (--resume continues).",
                                          within=">= 1"),

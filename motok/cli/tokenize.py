@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from motok.cli.common import (H5, JsonOut, Resume, Sets, data_option, number_option, output_option, recipe_option,
-                              report, results, run)
+                              report, results, run, split_option)
 from motok.cli.conventions import examples, renamed
 from motok.cli.outputs import Force, train_into
 
@@ -18,7 +18,7 @@ app = typer.Typer(help="Motion tokenizer (T2M-GPT VQ-VAE): train, encode, decode
 Tokenizer = typer.Option(..., "--tokenizer", "-t", help="A tokenizer run folder (from `tokenize train`).")
 NumCodebooks = number_option(None, "--codebooks", "-m", help="Use only the first M codebooks (residual VQ).",
                              within=">= 1")
-Split = typer.Option("test", "--split", help="The split of --data to evaluate (train, val, test).")
+Split = split_option("test", help="The split of --data to evaluate.")
 
 
 def _report(summary: dict, as_json: bool, title: str):
@@ -60,7 +60,7 @@ def encode(
     tokenizer: Path = Tokenizer,
     data: Path = data_option("A motion or motion-dataset artifact."),
     out: Path = output_option(help="Output tokens artifact (.h5).", suffixes=H5),
-    split: Optional[str] = typer.Option(None, "--split", help="Only this split (default: every clip)."),
+    split: Optional[str] = split_option(help="Only this split (default: every clip)."),
     num_codebooks: Optional[int] = NumCodebooks, as_json: bool = JsonOut,
 ):
     """Motion -> code indices, per clip (frames // rate, codebooks), with the tokenizer's hash and config."""

@@ -9,7 +9,8 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, data_option, input_option, number_option, output_option, report, results, run
+from motok.cli.common import (JsonOut, clips_option, data_option, input_option, number_option, output_option, report,
+                              results, run, split_option)
 from motok.cli.conventions import examples
 
 
@@ -22,9 +23,9 @@ def track_cmd(
     codebooks: Optional[int] = number_option(None, "--codebooks", "-m", help="With --prior: decode with the first M "
                                              "codebooks only (default: all).", within=">= 1"),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Clip-name glob (default: all)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Only the clips of this split (train, val, test), "
-                                        "e.g. real test motion tracked, for `motok eval t2m --motions`."),
+    clips: Optional[str] = clips_option(help="Clip-name glob (default: all)."),
+    split: Optional[str] = split_option(help="Only the clips of this split, "
+                                             "e.g. real test motion tracked, for `motok eval t2m --motions`."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip, the kinematic motion as a "
                                            "ghost (.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
     as_json: bool = JsonOut,

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from motok.cli.common import JsonOut, fail, input_option, number_option, report, run
+from motok.cli.common import JsonOut, clips_option, fail, input_option, number_option, report, run
 from motok.cli.conventions import examples
 
 
@@ -24,8 +24,7 @@ def view_cmd(
                                              "codebooks only (default: all).", within=">= 1"),
     clip: Optional[str] = typer.Option(None, "--clip", help="The clip to start with (name or index; default: the "
                                        "first)."),
-    clips: Optional[str] = typer.Option(None, "--clips", metavar="GLOB", help="Only the clips whose name matches "
-                                        "(N and P step through them)."),
+    clips: Optional[str] = clips_option(help="Only the clips whose name matches (N and P step through them)."),
     humanoid: Optional[Path] = input_option("--humanoid", help="MJCF for a motion file (default: built from --data "
                                             "once and cached, as motok sim does).", required=False),
     seconds: Optional[float] = number_option(None, "--seconds", help="Close the window after this many seconds "

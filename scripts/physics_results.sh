@@ -59,7 +59,7 @@
 # recipes' 3,000: a hybrid student matched its teacher after 400 iterations (docs/history.md). Both
 # budgets can grow later: PRIOR_IT=3000 continues every prior to 3,000 (constant learning rates; the
 # loss-weight ramps span the first 12.5 % of the budget, so only they differ from a 3,000 run).
-# Time on 2 cores (measured, docs/results.md): expert 3.3 h, priors 34-45 min each and their
+# Time on 2 cores (measured, docs/results.md): expert 3.3 h, priors 33-45 min each and their
 # evaluations ~0.6 h in all, text to physics 1 h; a task run 25-47 min, its evaluations a few
 # minutes (a navigation run's thrown balls ~15 min more), so `tasks` at 3 seeds (36 runs) is about
 # 25 h and `codebooks` (12 runs) about 9 h: about 42 h in all, in pieces. Every command's wall time goes to $R/logs/times.tsv;

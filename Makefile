@@ -1,7 +1,7 @@
 # make demo: install into .venv and run the main job end to end on the default data
 #            (preprocess, tokenizer, GPT, text -> motion; about 13 minutes on 2 CPU cores, of which ~2 embed the captions with mpnet once; 370 MB caption cache).
 # make test: install the same way and run the test suite.
-# make demo-physics: the physics half at toy size (about 33 minutes on 2 quiet CPU cores; see the target).
+# make demo-physics: the physics half at toy size (about 31 minutes on 2 quiet CPU cores; see the target).
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin

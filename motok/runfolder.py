@@ -181,11 +181,13 @@ def publish_staged(run: str | os.PathLike) -> None:
 
 
 def final_path(path: str | os.PathLike) -> str:
-    """``path`` with a staged temporary folder replaced by the run folder it becomes."""
+    """``path`` with a staged temporary folder replaced by the run folder it becomes, spelled as
+    ``-o`` was (the staged folders are keyed by absolute path; ``-o`` is usually relative)."""
     s = str(path)
+    a = os.path.abspath(s)
     for tmp, claim in _STAGED.items():
-        if s == tmp or s.startswith(tmp + os.sep):
-            return str(claim.out) + s[len(tmp):]
+        if a == tmp or a.startswith(tmp + os.sep):
+            return str(claim.out) + a[len(tmp):]
     return s
 
 

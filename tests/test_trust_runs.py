@@ -259,3 +259,21 @@ def test_a_writer_killed_outright_leaves_only_what_the_next_writer_removes(tmp_p
     with pytest.raises(Exception, match="there is no run at"):
         RunClaim(tmp_path / "missing" / "run", resume=True).__enter__()
     assert not (tmp_path / "missing").exists()
+
+
+def test_the_summary_names_the_run_folder_not_its_temporary_name(tmp_path, monkeypatch):
+    """A new run trains in a hidden sibling until its first checkpoint; what the command prints
+    must be the -o it was given, relative as given (it was the hidden name with a relative -o)."""
+    from motok.cli.outputs import train_into
+    from motok.runfolder import publish_staged
+
+    monkeypatch.chdir(tmp_path)
+
+    def fn(where):
+        (where / "bundle.json").write_text("{}")
+        publish_staged(where)
+        return {"run": str(where), "video": str(where / "curve.png"), "data": "walks.h5"}
+
+    for out in (Path("runs") / "expert", tmp_path / "abs" / "expert"):
+        summary = train_into(out, fn)
+        assert summary == {"run": str(out), "video": str(out / "curve.png"), "data": "walks.h5"}, summary

@@ -19,9 +19,9 @@ from motok import progress
 from motok.atomic import strict_json
 from motok.errors import MotokError
 
-__all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "clips_option", "data_option",
-           "device_sets", "existing", "fail", "input_option", "number_option", "output_option", "print_json",
-           "recipe_option", "report", "results", "run", "split_option", "valid_device", "wrote"]
+__all__ = ["DataRoot", "Device", "JsonOut", "Resume", "Sets", "cell", "choose_mujoco_gl", "clips_option",
+           "data_option", "device_sets", "existing", "fail", "input_option", "number_option", "output_option",
+           "print_json", "recipe_option", "report", "results", "run", "split_option", "valid_device", "wrote"]
 
 # Results (tables, JSON, what was written) go to stdout; progress, notes and errors to stderr
 # (motok.progress.console), so `motok ... --json | jq` and `> log` both work.

@@ -71,8 +71,8 @@ def eval_cmd(
                                  callback=existing),
     data: Optional[Path] = data_option("Dataset (default: the one it was trained on).", required=False),
     clips: Optional[str] = clips_option(help="Clip-name glob (default: the training clips)."),
-    split: Optional[str] = split_option(help="The clips of this split of the "
-                                             "dataset, with a table per content and per style."),
+    split: Optional[str] = split_option(help="The clips of this split of the dataset, with a table per "
+                                             "content and per style."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip (.mp4/.gif).",
                                            suffixes=(".mp4", ".gif"), required=False),
     termination: Optional[str] = typer.Option(None, "--termination",

@@ -119,8 +119,8 @@ def sample(
     data: Optional[Path] = data_option("With --closed-loop: a generated motion artifact (e.g. from `eval t2m "
                                        "--save-generated`) made again in the closed loop: each clip's text, length "
                                        "and seed.", required=False),
-    clips: Optional[str] = clips_option(help="With --data: only its clips whose "
-                                             "name matches (each keeps its seed), e.g. 'gen-*0' for every tenth."),
+    clips: Optional[str] = clips_option(help="With --data: only its clips whose name matches (each keeps its "
+                                             "seed), e.g. 'gen-*0' for every tenth."),
     as_json: bool = JsonOut,
 ):
     """Text -> codes -> motion artifact (and optional GIF/BVH); prints where everything went. With

@@ -24,8 +24,8 @@ def track_cmd(
                                              "codebooks only (default: all).", within=">= 1"),
     out: Path = output_option(help="The simulated motion (.h5).", suffixes=(".h5",)),
     clips: Optional[str] = clips_option(help="Clip-name glob (default: all)."),
-    split: Optional[str] = split_option(help="Only the clips of this split, "
-                                             "e.g. real test motion tracked, for `motok eval t2m --motions`."),
+    split: Optional[str] = split_option(help="Only the clips of this split, e.g. real test motion tracked, "
+                                             "for `motok eval t2m --motions`."),
     render: Optional[Path] = output_option("--render", help="Video of the first clip, the kinematic motion as a "
                                            "ghost (.mp4/.gif).", suffixes=(".mp4", ".gif"), required=False),
     as_json: bool = JsonOut,

@@ -173,3 +173,18 @@ def require_module(name: str, reason: str):
         return importlib.import_module(name)
     except ImportError:
         unavailable(reason)
+
+
+def assert_cli_accepts(commands) -> None:
+    """Each argv (without ``motok``) parses with every option it gives: ``--help`` goes last, and
+    click parses all options before it stops, so an unknown option or a missing value fails while
+    nothing runs (values are converted later: not checked here). For command lines written outside
+    Python (the physics queue, the Makefile's demos), which a renamed option would break hours in."""
+    from typer.testing import CliRunner
+
+    from motok.cli.main import app
+
+    runner = CliRunner()
+    for argv in commands:
+        res = runner.invoke(app, [*argv, "--help"])
+        assert res.exit_code == 0 and "Usage:" in res.output, (argv, res.output)

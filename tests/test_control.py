@@ -23,8 +23,8 @@ from motok.control.rl.rollout import Rollout
 from motok.control.mdp.task_env import TaskEnv
 from motok.control.tasks.imitation import ImitationTask, ImitationTaskConfig
 from motok.sim.env import HumanoidEnv, SimConfig
-from conftest import require_module
 from motok.sim.obs import Bodies, TreeKinematics, observation
+from conftest import require_module
 
 
 def _mdp(hum, lib, n, seed=0, base="current", stepper="auto", nan_actions="raise", **task) -> TaskEnv:
